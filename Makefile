@@ -1,0 +1,44 @@
+# proxpose: `make run` starts the service, `make test` runs the test suite.
+# Both create .venv on first use (python3 -m venv + pinned deps from pyproject.toml).
+PYTHON ?= python3
+VENV := .venv
+BIN := $(VENV)/bin
+STAMP := $(VENV)/.installed
+
+.PHONY: venv test run lint system-deps clean
+
+venv: $(STAMP)
+
+$(STAMP): pyproject.toml
+	$(PYTHON) -m venv $(VENV)
+	$(BIN)/pip install --quiet --upgrade pip
+	$(BIN)/pip install --quiet -e '.[dev]'
+	touch $(STAMP)
+
+# Optional system packages: LLVM >= 16 lets Mitsuba use its fast llvm variant (otherwise it
+# falls back to scalar_rgb), Chromium drives the browser tests. Installed only when we are
+# root with apt-get; skipped silently elsewhere.
+system-deps:
+	@if [ "$$(id -u)" = 0 ] && command -v apt-get >/dev/null; then \
+	  missing=""; \
+	  ls /usr/lib/*/libLLVM.so.19* >/dev/null 2>&1 || missing="$$missing libllvm19"; \
+	  command -v chromium >/dev/null || missing="$$missing chromium"; \
+	  if [ -n "$$missing" ]; then \
+	    (apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq $$missing >/dev/null) \
+	      || echo "note: could not install$$missing; continuing"; \
+	  fi; \
+	fi
+
+test: venv system-deps
+	$(BIN)/python -m pytest
+
+run: venv
+	$(BIN)/proxpose serve
+
+lint: venv
+	$(BIN)/ruff check schemas worker service tests
+	$(BIN)/ruff format --check schemas worker service tests
+	$(BIN)/mypy schemas service
+
+clean:
+	rm -rf $(VENV) .pytest_cache .mypy_cache .ruff_cache
