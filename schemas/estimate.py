@@ -1,0 +1,101 @@
+"""The estimate request (REQUEST.json) and its result (result.json)."""
+
+from __future__ import annotations
+
+from typing import Annotated, Literal
+
+from pydantic import BaseModel, ConfigDict, Field
+
+from schemas.camera import Camera
+from schemas.lighting import Lighting
+from schemas.options import EstimateOptions
+from schemas.pose import Pose, PoseOut
+
+StopReason = Literal[
+    "step_below_epsilon", "cost_converged", "max_iterations", "stalled", "pnp_converged"
+]
+Stage = Literal["coarse", "refine"]
+
+
+class EstimateRequest(BaseModel):
+    """Everything the engine needs besides the model and the image (the CLI's REQUEST.json)."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    camera: Camera
+    initial_pose: Pose = Field(description="The initial guess of the pose.")
+    lighting: Lighting = Field(default_factory=Lighting)
+    options: EstimateOptions = Field(default_factory=EstimateOptions)
+    ground_truth: Pose | None = Field(
+        default=None, description="The true pose, when known: errors are then reported."
+    )
+
+
+class IterationRecord(BaseModel):
+    """One iteration of the estimator."""
+
+    iteration: int = Field(description="1-based.")
+    stage: Stage
+    pose: PoseOut = Field(description="The estimate after this iteration.")
+    cost: float = Field(description="Mean squared feature residual at the estimate, px².")
+    step_norm: float = Field(description="‖δp‖ of the step taken (0 when rejected).")
+    lambda_: float = Field(alias="lambda", description="LM damping λ used (0 for PnP steps).")
+    accepted: bool
+    features: int = Field(description="Features used in this iteration.")
+    renders: int = Field(description="Renders made in this iteration.")
+    seconds: float = Field(description="Wall time of this iteration, s.")
+    rotation_error_deg: float | None = None
+    translation_error: float | None = Field(default=None, description="Scene units.")
+
+    model_config = ConfigDict(populate_by_name=True, serialize_by_alias=True)
+
+
+class Covariance(BaseModel):
+    """Pose covariance from the final Jacobian and residuals, σ² (JᵀWJ)⁻¹.
+
+    The matrix is over p = [δq, δt] (Gibbs increment in the model frame, translation in the
+    camera frame); the 1-σ figures convert δq to degrees (an angle is 2|δq| radians).
+    """
+
+    matrix: Annotated[list[list[float]], Field(min_length=6, max_length=6)]
+    sigma_rotation_deg: list[float] = Field(description="1-σ rotation about model x, y, z, deg.")
+    sigma_translation: list[float] = Field(description="1-σ translation x, y, z, scene units.")
+    residual_sigma_px: float = Field(description="Residual standard deviation, px.")
+
+
+class Errors(BaseModel):
+    """Errors against the ground truth (when the request had one), as the paper defines them."""
+
+    rotation_deg: float = Field(description="∠ΔR = arccos((tr(RᵀR̂) − 1)/2), degrees.")
+    translation: float = Field(description="‖t − t̂‖, scene units.")
+    translation_pct_of_range: float = Field(description="100·‖t − t̂‖/‖t‖.")
+    speed_score: float = Field(description="‖t − t̂‖/‖t‖ + 2·arccos|⟨q̂, q⟩| (SPEED).")
+
+
+class EstimateResult(BaseModel):
+    """The outcome of one estimate (the CLI's result.json)."""
+
+    pose: PoseOut
+    initial_pose: PoseOut
+    converged: bool
+    reason: StopReason
+    iterations: int
+    renders: int
+    seconds: float
+    method: str
+    history: list[IterationRecord]
+    covariance: Covariance | None = None
+    features: int = Field(description="Features used at the final estimate.")
+    rms_residual_px: float = Field(description="RMS feature residual at the final estimate, px.")
+    alignment_score: float = Field(
+        description="Normalised cross-correlation of the final render with the reference over "
+        "the target (1 = identical up to tone); a converged estimate needs at least 0.7 (0.3° "
+        "off it is about 0.9–0.99, 1° off 0.4–0.95)."
+    )
+    errors: Errors | None = None
+    initial_errors: Errors | None = None
+    timings_s: dict[str, float] = Field(
+        default_factory=dict, description="Wall time per part (render, features, ...), s."
+    )
+    variant: str = Field(description="Mitsuba variant that rendered.")
+    artifacts: list[str] = Field(default_factory=list, description="Image files written.")

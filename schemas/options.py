@@ -1,0 +1,147 @@
+"""Estimation options: every tunable of the engine, with defaults and a method preset.
+
+``method`` picks a preset; any field the request sets explicitly overrides the preset.
+"""
+
+from __future__ import annotations
+
+from typing import Any, Literal
+
+from pydantic import BaseModel, ConfigDict, Field
+
+Method = Literal["default", "paper", "pnp", "fast"]
+
+#: Values each method uses for the fields a request leaves unset.
+METHOD_PRESETS: dict[str, dict[str, Any]] = {
+    # PnP coarse stage, then the learned-Jacobian LM on KLT-refined corners.
+    "default": {},
+    # A literal reading of the paper: 4 SIFT features, fixed N_s, features lost in any
+    # perturbed view dropped, one Jacobian for all, no coarse stage, no reuse.
+    "paper": {
+        "coarse": "none",
+        "refine_features": "matches",
+        "max_features": 4,
+        "detector": "sift",
+        "min_features": 4,
+        "n_samples": 24,
+        "jacobian": "common",
+        "reuse_jacobian": False,
+        "perturbation_scale": 1.0,
+        "perturbation_rot_deg": 1.0,
+        "perturbation_trans_frac": 0.01,
+        "axis_cone_deg": 90.0,
+        "robust": False,
+        "max_iterations": 10,
+    },
+    # Baseline: PnP refinement on ray-cast correspondences only (no learned Jacobian).
+    "pnp": {"coarse": "pnp", "refine_features": "none"},
+    # Faster mode: the default pipeline with the Jacobian from ray-cast geometry instead of
+    # perturbed renders (no N_s renders), everything else the same.
+    "fast": {"jacobian": "analytic"},
+}
+
+
+class EstimateOptions(BaseModel):
+    """Tunables of the estimator. Units are in the field names or descriptions."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    method: Method = Field(
+        default="default",
+        description="'default': PnP coarse stage + learned-Jacobian LM on KLT corners; 'paper': "
+        "the paper's configuration read literally (4 features, fixed N_s); 'pnp': PnP "
+        "refinement on ray-cast correspondences only (a baseline); 'fast': the default with "
+        "the Jacobian from ray-cast geometry instead of perturbed renders.",
+    )
+    max_iterations: int = Field(default=15, ge=1, le=100, description="Iteration cap (all stages).")
+    epsilon: float = Field(
+        default=2e-5,
+        gt=0.0,
+        le=1.0,
+        description="Stop when ‖δp‖ < ε, with δp = [rotation increment (rad), translation "
+        "increment / range]: dimensionless.",
+    )
+    cost_tolerance: float = Field(
+        default=0.01,
+        ge=0.0,
+        le=1.0,
+        description="Stop when a step lowers the cost, or the linear model predicts it would "
+        "lower it, by less than this fraction.",
+    )
+    n_samples: int = Field(
+        default=12, ge=6, le=128, description="N_s: perturbed renders used to learn the Jacobian."
+    )
+    perturbation_px: float = Field(
+        default=3.0,
+        gt=0.0,
+        le=50.0,
+        description="Target image motion of a perturbation, px; sets the rotation and "
+        "translation sizes from the target's apparent size unless those are given.",
+    )
+    perturbation_rot_deg: float | None = Field(
+        default=None, gt=0.0, le=20.0, description="Perturbation rotation cap θ, degrees."
+    )
+    perturbation_trans_frac: float | None = Field(
+        default=None,
+        gt=0.0,
+        le=0.2,
+        description="Perturbation translation half-width, as a fraction of the range ‖t‖.",
+    )
+    axis_cone_deg: float = Field(
+        default=180.0,
+        gt=0.0,
+        le=180.0,
+        description="Perturbation axes are drawn uniformly in this cone around the current "
+        "attitude's axis; 180 = the whole sphere.",
+    )
+    perturbation_scale: float = Field(
+        default=0.5,
+        ge=0.25,
+        le=1.0,
+        description="Resolution of the perturbation renders relative to the image (Jacobian "
+        "learning needs less detail than the residuals).",
+    )
+    reuse_jacobian: bool = Field(
+        default=True,
+        description="Reuse the learned Jacobian across refinement iterations while the pose "
+        "moves little (the features stay the same reference corners).",
+    )
+    jacobian: Literal["per_feature", "common", "analytic"] = Field(
+        default="per_feature",
+        description="'per_feature': fit each feature's two rows from the views it was tracked "
+        "in; 'common': drop features lost in any view (the paper); 'analytic': from ray-cast "
+        "geometry, no perturbed renders (the 'fast' method).",
+    )
+    coarse: Literal["pnp", "none"] = Field(
+        default="pnp",
+        description="Coarse stage before the Jacobian LM: PnP on ray-cast correspondences.",
+    )
+    refine_features: Literal["klt", "matches", "none"] = Field(
+        default="klt",
+        description="Features of the LM stage: 'klt' = reference corners tracked into the "
+        "render; 'matches' = descriptor matches each iteration; 'none' = no LM stage.",
+    )
+    detector: Literal["both", "sift", "orb"] = Field(
+        default="both", description="Keypoint detector: SIFT, ORB, or both pooled."
+    )
+    ratio: float = Field(default=0.8, gt=0.0, lt=1.0, description="Lowe ratio-test threshold.")
+    max_features: int = Field(default=600, ge=3, le=5000, description="Features used at most.")
+    min_features: int = Field(default=6, ge=3, le=1000, description="Fewer fails the estimate.")
+    robust: bool = Field(
+        default=True, description="Pose-consistent outlier rejection (RANSAC and IRLS weights)."
+    )
+    lambda_init: float = Field(default=1e-3, gt=0.0, le=1e6, description="Initial LM damping λ.")
+    spp: int = Field(default=16, ge=1, le=1024, description="Samples per pixel, main renders.")
+    perturbation_spp: int = Field(
+        default=4, ge=1, le=1024, description="Samples per pixel, perturbation renders."
+    )
+    seed: int = Field(default=0, ge=0, le=2**31 - 1, description="Seed of all random choices.")
+
+    def resolved(self) -> EstimateOptions:
+        """These options with the method preset filled into every field left unset."""
+        preset = METHOD_PRESETS[self.method]
+        values = self.model_dump()
+        for name, value in preset.items():
+            if name not in self.model_fields_set:
+                values[name] = value
+        return EstimateOptions.model_validate(values)

@@ -1,0 +1,251 @@
+"""Process settings, read from the environment with the prefix ``PROXPOSE_``.
+
+Read through :func:`get_settings` (cached); tests clear the cache instead of patching a global.
+Every field is documented in the README's settings table (the descriptions here are the source).
+"""
+
+from __future__ import annotations
+
+import re
+from functools import lru_cache
+from pathlib import Path
+from typing import Annotated, Literal
+
+from pydantic import Field, field_validator, model_validator
+from pydantic_settings import BaseSettings, NoDecode, SettingsConfigDict
+
+#: Seconds in a day, for the retention default.
+_DAY_S = 24 * 3600
+_MIB = 1024 * 1024
+#: Names of API keys (who owns jobs and models): letters, digits, '_', '.', '-'.
+KEY_NAME_PATTERN = r"^[A-Za-z0-9_.-]{1,64}$"
+#: Shortest API key accepted, characters (a random key of 32+ characters is recommended).
+API_KEY_MIN_CHARS = 16
+
+
+def _parse_keys(value: object) -> object:
+    """``"alice:KEY1,bob:KEY2"`` → {"alice": "KEY1", "bob": "KEY2"} (a dict passes through)."""
+    if not isinstance(value, str):
+        return value
+    keys: dict[str, str] = {}
+    for entry in filter(None, (part.strip() for part in value.split(","))):
+        name, sep, key = entry.partition(":")
+        if not sep:
+            raise ValueError(f"entry '{name[:12]}…' is not name:key")
+        keys[name.strip()] = key.strip()
+    return keys
+
+
+def _check_keys(keys: dict[str, str]) -> dict[str, str]:
+    for name, key in keys.items():
+        if not re.match(KEY_NAME_PATTERN, name):
+            raise ValueError(f"key name '{name}' must match {KEY_NAME_PATTERN}")
+        if len(key) < API_KEY_MIN_CHARS or not key.isprintable() or " " in key:
+            raise ValueError(
+                f"the key of '{name}' must be at least {API_KEY_MIN_CHARS} printable characters "
+                "without spaces"
+            )
+    return keys
+
+
+ApiKeys = Annotated[dict[str, str], NoDecode]
+
+
+class Settings(BaseSettings):
+    """Settings shared by the CLI, the API and the workers."""
+
+    # hide_input_in_errors: a rejected setting may be an API key, which must not reach a log
+    model_config = SettingsConfigDict(
+        env_prefix="PROXPOSE_", extra="ignore", hide_input_in_errors=True
+    )
+
+    # -- engine
+    data_dir: Path = Field(
+        default=Path("data"),
+        description="Where the embedded Redis keeps its data, and where each worker caches model "
+        "files and the demo model.",
+    )
+    variant: Literal["auto", "llvm_ad_rgb", "scalar_rgb"] = Field(
+        default="auto",
+        description="Mitsuba variant; 'auto' takes llvm_ad_rgb when an LLVM ≥ 16 is found, "
+        "else scalar_rgb.",
+    )
+    llvm_path: Path | None = Field(
+        default=None, description="libLLVM shared library for Dr.Jit (found automatically)."
+    )
+
+    # -- Redis and the queue
+    redis_url: str | None = Field(
+        default=None,
+        description="Redis to use, e.g. redis://host:6379/0. Unset, `proxpose serve` starts an "
+        "embedded one, and the API and `proxpose worker` connect to that one "
+        "(redis://127.0.0.1:<embedded_redis_port>/0).",
+    )
+    redis_prefix: str = Field(
+        default="proxpose",
+        pattern=r"^[A-Za-z0-9_.-]{1,40}$",
+        description="Prefix of every Redis key and queue name this service uses, so that several "
+        "deployments can share one Redis.",
+    )
+    embedded_redis_port: int = Field(
+        default=6380,
+        ge=1,
+        le=65535,
+        description="TCP port (on 127.0.0.1) of the Redis that `proxpose serve` embeds.",
+    )
+    job_timeout_s: int = Field(
+        default=900,
+        ge=10,
+        le=7 * _DAY_S,
+        description="An estimate running longer than this is stopped and fails with 'timeout'.",
+    )
+    render_timeout_s: float = Field(
+        default=60.0,
+        gt=0.0,
+        le=3600.0,
+        description="How long POST /v1/renders waits for a worker's render before answering 504.",
+    )
+    retention_s: int = Field(
+        default=7 * _DAY_S,
+        ge=60,
+        description="How long finished jobs, their results and artifacts are kept in Redis.",
+    )
+
+    # -- HTTP
+    host: str = Field(default="127.0.0.1", description="Address `proxpose serve` binds the API to.")
+    port: int = Field(default=8000, ge=1, le=65535, description="Port of the API.")
+    workers: int = Field(
+        default=1, ge=0, le=64, description="Workers `proxpose serve` starts beside the API."
+    )
+    max_image_bytes: int = Field(
+        default=64 * _MIB, ge=1024, description="Largest reference image upload, bytes."
+    )
+    max_image_pixels: int = Field(
+        default=4096 * 4096,
+        ge=256,
+        description="Largest reference image, pixels; checked from the header before decoding.",
+    )
+    max_model_bytes: int = Field(
+        default=128 * _MIB, ge=1024, description="Largest model file upload, bytes."
+    )
+    max_model_faces: int = Field(
+        default=2_000_000, ge=1, description="Most triangles an uploaded model may have."
+    )
+    max_request_json_bytes: int = Field(
+        default=_MIB,
+        ge=1024,
+        le=_MIB,
+        description="Largest `request` JSON of an estimate, bytes (as a form field Starlette "
+        "caps it at 1 MiB).",
+    )
+
+    # -- access control and limits per key
+    api_keys: ApiKeys = Field(
+        default_factory=dict,
+        repr=False,
+        description="API keys as 'name:key,name:key'. When any key (here or in admin_api_keys) "
+        "is set, every /v1 route and page needs 'Authorization: Bearer <key>'; a key sees only "
+        "the jobs and models of its name.",
+    )
+    admin_api_keys: ApiKeys = Field(
+        default_factory=dict,
+        repr=False,
+        description="Admin API keys, 'name:key,...': they see and manage every job and model.",
+    )
+    submissions_per_minute: float = Field(
+        default=120.0,
+        ge=0.0,
+        description="Sustained submissions (POST of estimates, renders, models) per minute per "
+        "key; 0 = unlimited. Above it: 429 with Retry-After.",
+    )
+    submission_burst: int = Field(
+        default=30, ge=1, description="Submissions a key may make at once before the rate applies."
+    )
+    max_active_jobs_per_key: int = Field(
+        default=100,
+        ge=0,
+        description="Queued plus running estimates per key; 0 = unlimited. Above it: 429.",
+    )
+    max_models_per_key: int = Field(
+        default=100, ge=0, description="Models a key may register; 0 = unlimited. Above it: 403."
+    )
+    cors_origins: Annotated[list[str], NoDecode] = Field(
+        default_factory=list,
+        description="Origins allowed to call the API from a browser (CORS), comma-separated; "
+        "empty = CORS off.",
+    )
+
+    # -- crash safety
+    job_lease_s: float = Field(
+        default=30.0,
+        ge=2.0,
+        le=600.0,
+        description="A running estimate whose worker has not renewed its lease for this long "
+        "is taken as lost (killed, crashed) and queued again.",
+    )
+    job_max_attempts: int = Field(
+        default=3,
+        ge=1,
+        le=20,
+        description="Times an estimate is started at most; after that many lost workers it "
+        "fails with 'worker_lost'.",
+    )
+    log_format: Literal["json", "text"] = Field(
+        default="json",
+        description="Log lines of the API and workers: JSON objects (with job ids) or text.",
+    )
+
+    sse_keepalive_s: float = Field(
+        default=15.0,
+        gt=0.0,
+        le=300.0,
+        description="Interval of keep-alive comments on idle event streams, s.",
+    )
+    shutdown_grace_s: float = Field(
+        default=10.0,
+        ge=0.0,
+        le=3600.0,
+        description="On Ctrl-C, how long `proxpose serve` lets running jobs finish before it "
+        "stops them (they go back to the queue).",
+    )
+
+    @field_validator("api_keys", "admin_api_keys", mode="before")
+    @classmethod
+    def _keys_from_text(cls, value: object) -> object:
+        return _parse_keys(value)
+
+    @field_validator("api_keys", "admin_api_keys")
+    @classmethod
+    def _keys_valid(cls, value: dict[str, str]) -> dict[str, str]:
+        return _check_keys(value)
+
+    @field_validator("cors_origins", mode="before")
+    @classmethod
+    def _origins_from_text(cls, value: object) -> object:
+        if isinstance(value, str):
+            return [o.strip().rstrip("/") for o in value.split(",") if o.strip()]
+        return value
+
+    @model_validator(mode="after")
+    def _keys_distinct(self) -> Settings:
+        entries = [*self.api_keys.items(), *self.admin_api_keys.items()]
+        if len({key for _, key in entries}) != len(entries):
+            raise ValueError("the same API key is given twice (keys must be distinct)")
+        if set(self.api_keys) & set(self.admin_api_keys):
+            raise ValueError("a key name is both in api_keys and admin_api_keys")
+        return self
+
+    @property
+    def auth_enabled(self) -> bool:
+        """Whether API keys are required (some key is configured)."""
+        return bool(self.api_keys or self.admin_api_keys)
+
+    def effective_redis_url(self) -> str:
+        """``redis_url``, or the URL of the embedded Redis when it is unset."""
+        return self.redis_url or f"redis://127.0.0.1:{self.embedded_redis_port}/0"
+
+
+@lru_cache
+def get_settings() -> Settings:
+    """The process's settings (cached; call ``get_settings.cache_clear()`` after env changes)."""
+    return Settings()
