@@ -1,0 +1,1 @@
+"""The estimation engine (render, features, learned Jacobian, LM) and the RQ job entry."""
