@@ -1,0 +1,139 @@
+"""Image input and output: decoding references, encoding renders, tone mapping.
+
+References arrive as PNG, JPEG or TIFF, 8- or 16-bit, grey, RGB or RGBA. Internally an image is a
+float32 array in [0, 1], shape (H, W) for grey or (H, W, 3) for colour. Renders are linear
+radiance; :func:`to_display` maps them to the sRGB-encoded [0, 1] range a camera file would hold.
+"""
+
+from __future__ import annotations
+
+import io
+
+import numpy as np
+from numpy.typing import NDArray
+from PIL import Image
+
+from worker.exceptions import ImageDecodeError, ImageSizeMismatchError, ImageTooLargeError
+
+FloatImage = NDArray[np.float32]
+
+#: Largest image accepted, in pixels (a decompression-bomb guard well above 4096²).
+MAX_IMAGE_PIXELS = 4096 * 4096
+_FORMATS = ("PNG", "JPEG", "TIFF")
+
+
+def decode_image(data: bytes, max_pixels: int = MAX_IMAGE_PIXELS) -> FloatImage:
+    """Decode PNG/JPEG/TIFF bytes to float32 in [0, 1], (H, W) or (H, W, 3); alpha is dropped.
+
+    The header is read first (PIL, formats whitelisted) so that ImageTooLargeError is raised
+    before any pixel is decoded; the pixels are then decoded by OpenCV, which keeps 16-bit depth
+    for every format. Raises ImageDecodeError for anything unreadable.
+    """
+    if not data:
+        raise ImageDecodeError("image is empty")
+    try:
+        with Image.open(io.BytesIO(data), formats=_FORMATS) as img:
+            w, h = img.size
+            fmt = img.format
+    except Image.DecompressionBombError as exc:  # PIL's own guard (> 179 Mpx) fired first
+        raise ImageTooLargeError(f"image has more than {max_pixels} pixels ({exc})") from exc
+    except Exception as exc:  # PIL raises many types for unknown or corrupt data
+        raise ImageDecodeError(f"not a readable PNG, JPEG or TIFF image ({exc})") from exc
+    if w * h > max_pixels:
+        raise ImageTooLargeError(f"image has {w}×{h} pixels, more than {max_pixels}")
+    import cv2
+
+    a = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_UNCHANGED)
+    if a is None or a.size == 0 or a.shape[:2] != (h, w):
+        raise ImageDecodeError("image data is corrupt or truncated")
+    if fmt == "TIFF" and a.dtype == np.uint8 and a.ndim == 3 and a.shape[2] == 4:
+        # OpenCV reads 8-bit TIFFs with alpha through libtiff's RGBA reader, which premultiplies
+        # unassociated alpha; PIL returns the stored (straight) colours, as for PNG.
+        try:
+            with Image.open(io.BytesIO(data), formats=("TIFF",)) as img:
+                a = np.asarray(img.convert("RGBA"))[..., [2, 1, 0, 3]]
+        except Exception as exc:
+            raise ImageDecodeError(f"image data is corrupt or truncated ({exc})") from exc
+    return _to_float(a)
+
+
+def _to_float(a: NDArray[np.generic]) -> FloatImage:
+    """OpenCV's decoded array (grey, BGR or BGRA; 8/16-bit or float) to float [0, 1] RGB/grey."""
+    if a.dtype == np.uint8:
+        f = a.astype(np.float32) / 255.0
+    elif a.dtype == np.uint16:
+        f = a.astype(np.float32) / 65535.0
+    else:
+        f = a.astype(np.float32)
+        f = f / max(float(f.max()), 1e-12) if f.max() > 1.0 else np.clip(f, 0.0, 1.0)
+    if f.ndim == 3:
+        f = f[..., :3][..., ::-1] if f.shape[2] >= 3 else f[..., 0]
+    return np.ascontiguousarray(f, dtype=np.float32)
+
+
+def decode_image_file(path: str, max_pixels: int = MAX_IMAGE_PIXELS) -> FloatImage:
+    """Read and decode an image file (see :func:`decode_image`)."""
+    with open(path, "rb") as f:
+        return decode_image(f.read(), max_pixels)
+
+
+def check_size(image: FloatImage, width: int, height: int) -> None:
+    """Raise ImageSizeMismatchError unless the image is ``width`` × ``height``."""
+    h, w = image.shape[:2]
+    if (w, h) != (width, height):
+        raise ImageSizeMismatchError(f"image is {w}×{h} px but the camera is {width}×{height} px")
+
+
+def to_grey(image: FloatImage) -> FloatImage:
+    """Grey image for feature work: the mean of R, G and B (a grey image is returned as is).
+
+    Not luma: Rec. 709 weights blue at 7 %, which turns blue solar arrays black and hides the
+    largest structures of many spacecraft from the feature tracker.
+    """
+    if image.ndim == 2:
+        return image.astype(np.float32, copy=False)
+    return image[..., :3].mean(axis=2, dtype=np.float32)
+
+
+def srgb_encode(linear: NDArray[np.floating]) -> FloatImage:
+    """sRGB transfer function of linear values clipped to [0, 1]."""
+    x = np.clip(linear, 0.0, 1.0).astype(np.float32)
+    return np.where(x <= 0.0031308, 12.92 * x, 1.055 * np.power(x, 1 / 2.4) - 0.055).astype(
+        np.float32
+    )
+
+
+def srgb_decode(encoded: NDArray[np.floating]) -> FloatImage:
+    """Inverse sRGB transfer function, [0, 1] → linear [0, 1]."""
+    x = np.clip(encoded, 0.0, 1.0).astype(np.float32)
+    return np.where(x <= 0.04045, x / 12.92, np.power((x + 0.055) / 1.055, 2.4)).astype(np.float32)
+
+
+def to_display(linear: FloatImage) -> FloatImage:
+    """A linear render as an sRGB-encoded image in [0, 1], as a camera would store it."""
+    return srgb_encode(linear)
+
+
+def to_uint8(image: NDArray[np.floating]) -> NDArray[np.uint8]:
+    """[0, 1] floats to 8-bit with rounding."""
+    return (np.clip(image, 0.0, 1.0) * 255.0 + 0.5).astype(np.uint8)
+
+
+def encode_png(image: NDArray[np.floating] | NDArray[np.uint8], bits: int = 8) -> bytes:
+    """PNG bytes of a [0, 1] float (or uint8) image, grey or RGB; ``bits`` 8 or 16."""
+    if image.dtype == np.uint8:
+        arr: NDArray[np.generic] = image
+    elif bits == 16:
+        arr = (np.clip(image, 0.0, 1.0) * 65535.0 + 0.5).astype(np.uint16)
+    else:
+        arr = to_uint8(image)
+    buf = io.BytesIO()
+    if arr.dtype == np.uint16 and arr.ndim == 3:
+        import cv2
+
+        ok, enc = cv2.imencode(".png", np.ascontiguousarray(arr[..., ::-1]))
+        if not ok:
+            raise ImageDecodeError("PNG encoding failed")
+        return enc.tobytes()
+    Image.fromarray(arr).save(buf, format="PNG")
+    return buf.getvalue()

@@ -1,0 +1,370 @@
+"""Rendering a loaded model at a pose with Mitsuba 3, and ray casting its surface.
+
+The scene is built once per (model, camera, scales): the model stays in its own frame, which is
+Mitsuba's world frame, and a pose b = R a + t moves the *camera* (and the sun with it) through
+``mi.traverse`` updates — no scene reload, no recompilation. One sensor is built per resolution
+scale (the full image and the cheaper perturbation renders).
+"""
+
+from __future__ import annotations
+
+import os
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+from worker.camera import PinholeCamera, RenderPlan, plan_render, warp_to_target
+from worker.exceptions import RenderError
+from worker.meshes import LoadedModel, MeshPart
+
+Array = NDArray[np.float64]
+
+#: OpenCV camera axes (x right, y down) from Mitsuba's (x left, y up): p_cv = FLIP · p_mi.
+CV_FROM_MI = np.diag([-1.0, -1.0, 1.0])
+#: Clip planes in model radii (a target farther than FAR_CLIP_RADII is below a pixel anyway).
+NEAR_CLIP_RADII = 1e-4
+FAR_CLIP_RADII = 1e5
+#: Texture resolution kept at the working range, texels per pixel.
+TEXELS_PER_PIXEL = 1.5
+#: Pixel sampler: multi-jittered samples cut the edge noise of a render about 2× against
+#: independent ones at the same count, and render noise moves the cost minimum.
+SAMPLER = "multijitter"
+#: Ray batches are padded to a multiple of this, so Dr.Jit reuses one compiled kernel.
+RAY_BATCH = 4096
+
+
+@dataclass(frozen=True)
+class LightingSpec:
+    """Sun direction (camera frame, unit, target → sun), sun irradiance and ambient radiance."""
+
+    sun_direction: tuple[float, float, float]
+    sun_irradiance: float
+    ambient: float
+
+
+@dataclass
+class RenderStats:
+    """Counters for the result's render count and the profile."""
+
+    renders: int = 0
+    seconds: float = 0.0
+    by_scale: dict[float, int] = field(default_factory=dict)
+
+
+def frame_with_z(d: ArrayLike) -> Array:
+    """A rotation matrix whose third column is the unit vector d (columns = local axes)."""
+    z = np.asarray(d, dtype=np.float64)
+    z = z / np.linalg.norm(z)
+    helper = np.array([1.0, 0.0, 0.0]) if abs(z[0]) < 0.9 else np.array([0.0, 1.0, 0.0])
+    x = np.cross(helper, z)
+    x /= np.linalg.norm(x)
+    return np.column_stack([x, np.cross(z, x), z])
+
+
+def scalar_transform(M: Array) -> object:
+    import mitsuba as mi
+
+    return mi.ScalarTransform4f(np.asarray(M, dtype=np.float64).tolist())
+
+
+class Renderer:
+    """Renders one model through one camera at any pose; see the module docstring."""
+
+    def __init__(
+        self,
+        model: LoadedModel,
+        camera: PinholeCamera,
+        lighting: LightingSpec,
+        scales: tuple[float, ...] = (1.0,),
+        spp: int = 8,
+        integrator: str = "direct",
+        pixel_filter: str = "box",
+        px_per_unit: float | None = None,
+    ) -> None:
+        import mitsuba as mi
+
+        self.model = model
+        self.camera = camera
+        self.spp = spp
+        # 'direct' (sun + ambient, one bounce) is what the estimator renders with; 'path' and
+        # a Gaussian filter give test references a renderer setup of their own.
+        self._integrator = integrator
+        self._pixel_filter = pixel_filter
+        # Textures are prefiltered to about one texel per pixel at the working range: Mitsuba's
+        # bitmap has no mip-mapping, and a texture much finer than the pixels aliases into
+        # sampling noise that no feature tracker can see through.
+        self.px_per_unit = px_per_unit
+        self.plans: dict[float, RenderPlan] = {
+            s: plan_render(camera if s == 1.0 else camera.scaled(s)) for s in scales
+        }
+        self.stats = RenderStats()
+        self._lighting = lighting
+        self._R = np.eye(3)
+        self._t = np.array([0.0, 0.0, 1.0])
+        try:
+            self.scene = mi.load_dict(self.scene_dict())
+        except Exception as exc:
+            raise RenderError(f"cannot build the Mitsuba scene: {exc}") from exc
+        self.params = mi.traverse(self.scene)
+        self._render_fn = _frozen_render() if use_frozen(mi.variant()) else _plain_render
+        self._sensor_index = {s: i for i, s in enumerate(self.plans)}
+        self.set_lighting(lighting)
+
+    # -- scene construction -------------------------------------------------------------
+    def scene_dict(self) -> dict[str, object]:
+        """The Mitsuba scene description this renderer loads (sensors, lights, meshes)."""
+        scene: dict[str, object] = {
+            "type": "scene",
+            "integrator": (
+                {"type": "path", "max_depth": 4, "hide_emitters": True}
+                if self._integrator == "path"
+                else {"type": "direct", "hide_emitters": True}
+            ),
+            # Emitter sampling picks one light per sample in proportion to sampling_weight:
+            # the sun takes every pick, and the ambient term comes from BSDF samples alone.
+            # (Equal weights made half the sun samples miss: heavy binary noise.)
+            "sun": {
+                "type": "directional",
+                "direction": [0.0, 0.0, 1.0],
+                "irradiance": 1.0,
+                "sampling_weight": 1.0,
+            },
+            "ambient": {"type": "constant", "radiance": 0.0, "sampling_weight": 0.0},
+        }
+        r = self.model.radius
+        for i, plan in enumerate(self.plans.values()):
+            px, py = plan.principal_point_offset
+            scene[f"sensor{i}"] = {
+                "type": "perspective",
+                "fov_axis": "x",
+                "fov": plan.x_fov_deg,
+                # Mitsuba shifts the image opposite to its principal point offset (checked
+                # against K[R|t] projection in tests/test_projection.py).
+                "principal_point_offset_x": -px,
+                "principal_point_offset_y": -py,
+                # Fixed clip planes: changing them recompiles the render kernel.
+                "near_clip": NEAR_CLIP_RADII * r,
+                "far_clip": FAR_CLIP_RADII * r,
+                # Distinct start poses: identical sensors would be merged by Mitsuba.
+                "to_world": scalar_transform(np.eye(4) + np.eye(4, k=3) * i),
+                "film": {
+                    "type": "hdrfilm",
+                    "width": plan.source.width,
+                    "height": plan.source.height,
+                    "rfilter": {"type": self._pixel_filter},
+                    "pixel_format": "rgb",
+                },
+                "sampler": {"type": SAMPLER, "sample_count": self.spp},
+            }
+        for i, part in enumerate(self.model.parts):
+            scene[f"part{i}"] = _mesh(part, f"part{i}", self.px_per_unit)
+        return scene
+
+    # -- pose and lighting --------------------------------------------------------------
+    def set_pose(self, R: ArrayLike, t: ArrayLike) -> None:
+        """Place the camera so that the model appears at pose b = R a + t."""
+        R = np.asarray(R, dtype=np.float64)
+        t = np.asarray(t, dtype=np.float64)
+        cam2model = np.eye(4)
+        cam2model[:3, :3] = R.T @ CV_FROM_MI
+        cam2model[:3, 3] = -R.T @ t
+        for i in range(len(self.plans)):
+            self._put_transform(f"sensor{i}.to_world", cam2model)
+        self._R, self._t = R, t
+        self._update_sun()
+        self.params.update()
+
+    def set_lighting(self, lighting: LightingSpec) -> None:
+        self._lighting = lighting
+        self.params["sun.irradiance.value"] = lighting.sun_irradiance
+        self.params["ambient.radiance.value"] = lighting.ambient
+        self._update_sun()
+        self.params.update()
+
+    def _update_sun(self) -> None:
+        # Light travels from the sun towards the target: −sun_direction, camera frame → model.
+        d_model = self._R.T @ -np.asarray(self._lighting.sun_direction, dtype=np.float64)
+        M = np.eye(4)
+        M[:3, :3] = frame_with_z(d_model)
+        self._put_transform("sun.to_world", M)
+
+    def _put_transform(self, key: str, M: Array) -> None:
+        self.params[key] = type(self.params[key])(M.tolist())
+
+    # -- rendering ----------------------------------------------------------------------
+    def render(
+        self,
+        R: ArrayLike,
+        t: ArrayLike,
+        scale: float = 1.0,
+        spp: int | None = None,
+        seed: int = 0,
+    ) -> NDArray[np.float32]:
+        """Linear RGB render (H, W, 3) float32 at pose (R, t), on the scaled camera's grid."""
+
+        plan = self.plans[scale]
+        start = time.perf_counter()
+        self.set_pose(R, t)
+        try:
+            img = self._render_fn(self.scene, self._sensor_index[scale], spp or self.spp, seed)
+        except Exception as exc:
+            raise RenderError(f"render failed: {exc}") from exc
+        out = warp_to_target(np.asarray(img, dtype=np.float32)[..., :3], plan)
+        self.stats.renders += 1
+        self.stats.seconds += time.perf_counter() - start
+        self.stats.by_scale[scale] = self.stats.by_scale.get(scale, 0) + 1
+        return out
+
+    def camera_at(self, scale: float) -> PinholeCamera:
+        """The target camera of the render at ``scale``."""
+        return self.plans[scale].target
+
+    # -- ray casting --------------------------------------------------------------------
+    def raycast(
+        self, R: ArrayLike, t: ArrayLike, uv: ArrayLike, scale: float = 1.0
+    ) -> tuple[Array, NDArray[np.bool_]]:
+        """Surface points (N, 3, model frame) seen through pixels uv (N, 2) at pose (R, t).
+
+        Returns the points and a mask of the rays that hit the model.
+        """
+        R = np.asarray(R, dtype=np.float64)
+        t = np.asarray(t, dtype=np.float64)
+        uv = np.atleast_2d(np.asarray(uv, dtype=np.float64))
+        n = len(uv)
+        if n == 0:
+            return np.zeros((0, 3)), np.zeros(0, dtype=bool)
+        d_model = self.camera_at(scale).rays(uv) @ R  # (Rᵀ d)ᵀ
+        origin = -R.T @ t
+        hit, points = _intersect(self.scene, origin, d_model)
+        return points[:n], hit[:n]
+
+    def coverage(self, R: ArrayLike, t: ArrayLike, grid: int = 64) -> float:
+        """Fraction of the image the model covers at (R, t), from a grid of rays."""
+        cam = self.camera
+        us = np.linspace(0, cam.width - 1, grid)
+        vs = np.linspace(0, cam.height - 1, grid)
+        uv = np.stack(np.meshgrid(us, vs), axis=-1).reshape(-1, 2)
+        return float(self.raycast(R, t, uv)[1].mean())
+
+
+def use_frozen(variant: str) -> bool:
+    """Whether renders replay a recorded kernel (JIT variants, unless PROXPOSE_FROZEN=0)."""
+    return not variant.startswith("scalar") and os.environ.get("PROXPOSE_FROZEN", "1") != "0"
+
+
+def _plain_render(scene: object, sensor: int, spp: int, seed: int) -> object:
+    import mitsuba as mi
+
+    return mi.render(scene, sensor=sensor, spp=spp, seed=seed)
+
+
+def _frozen_render() -> Callable[[object, int, int, int], object]:
+    """``mi.render`` under ``dr.freeze``: the first calls per (sensor, spp) record the kernel
+    launches, later ones replay them with the scene's current parameters (pose, lights) and
+    skip tracing. Tracing costs little for one mesh but grows with every part and texture of
+    a model (66 ms of a 95 ms render for the 40-part demo satellite); the output is identical.
+    """
+    import drjit as dr
+    import mitsuba as mi
+
+    @dr.freeze
+    def render(scene: object, sensor: int, spp: int, seed: object) -> object:
+        return mi.render(scene, sensor=sensor, spp=spp, seed=seed)
+
+    def call(scene: object, sensor: int, spp: int, seed: int) -> object:
+        return render(scene, sensor, spp, mi.UInt32(seed))
+
+    return call
+
+
+def _intersect(scene: object, origin: Array, dirs: Array) -> tuple[NDArray[np.bool_], Array]:
+    """Intersect rays (common origin) with the scene; batches padded to RAY_BATCH."""
+    import drjit as dr
+    import mitsuba as mi
+
+    n = len(dirs)
+    if mi.variant().startswith("scalar"):
+        hits = np.zeros(n, dtype=bool)
+        pts = np.zeros((n, 3))
+        o = mi.Point3f(*origin)
+        for i, d in enumerate(dirs):
+            si = scene.ray_intersect(mi.Ray3f(o, mi.Vector3f(*d)))  # type: ignore[attr-defined]
+            if si.is_valid():
+                hits[i] = True
+                pts[i] = [si.p.x, si.p.y, si.p.z]
+        return hits, pts
+    padded = -(-n // RAY_BATCH) * RAY_BATCH
+    D = np.zeros((padded, 3))
+    D[:n] = dirs
+    D[n:] = dirs[0]
+    ray = mi.Ray3f(
+        mi.Point3f(*[mi.Float(np.full(padded, c, dtype=np.float32)) for c in origin]),
+        mi.Vector3f(*[mi.Float(D[:, k].astype(np.float32)) for k in range(3)]),
+    )
+    si = scene.ray_intersect(ray)  # type: ignore[attr-defined]
+    hits = np.array(si.is_valid(), dtype=bool)
+    pts = np.stack([np.array(si.p.x), np.array(si.p.y), np.array(si.p.z)], axis=1)
+    dr.eval()
+    return hits, pts.astype(np.float64)
+
+
+def prefiltered_texture(part: MeshPart, px_per_unit: float | None) -> NDArray[np.float32]:
+    """The part's texture downsampled to about TEXELS_PER_PIXEL at ``px_per_unit``."""
+    assert part.texture is not None
+    if not px_per_unit:
+        return part.texture
+    factor = part.texels_per_unit / (TEXELS_PER_PIXEL * px_per_unit)
+    if factor <= 1.0:
+        return part.texture
+    import cv2
+
+    h, w = part.texture.shape[:2]
+    size = (max(8, round(w / factor)), max(8, round(h / factor)))
+    return cv2.resize(part.texture, size, interpolation=cv2.INTER_AREA)
+
+
+def _mesh(part: MeshPart, name: str, px_per_unit: float | None = None) -> object:
+    """A Mitsuba mesh with a diffuse BSDF (texture, vertex colours or a constant albedo)."""
+    import mitsuba as mi
+
+    if part.texture is not None:
+        reflectance: object = {
+            "type": "bitmap",
+            "bitmap": mi.Bitmap(prefiltered_texture(part, px_per_unit)),
+            "raw": True,
+            "filter_type": "bilinear",
+        }
+    elif part.vertex_colors is not None:
+        reflectance = {"type": "mesh_attribute", "name": "vertex_color"}
+    else:
+        reflectance = {"type": "rgb", "value": list(part.albedo)}
+    props = mi.Properties()
+    props["bsdf"] = mi.load_dict({"type": "diffuse", "reflectance": reflectance})
+    has_normals = part.normals is not None
+    has_uv = part.uvs is not None and part.texture is not None
+    mesh = mi.Mesh(
+        name,
+        len(part.vertices),
+        len(part.faces),
+        props=props,
+        has_vertex_normals=has_normals,
+        has_vertex_texcoords=has_uv,
+    )
+    params = mi.traverse(mesh)
+
+    def put(key: str, values: NDArray[np.generic]) -> None:
+        params[key] = type(params[key])(np.ascontiguousarray(values).ravel())
+
+    put("vertex_positions", part.vertices)
+    put("faces", part.faces)
+    if has_normals:
+        put("vertex_normals", part.normals)  # type: ignore[arg-type]
+    if has_uv:
+        put("vertex_texcoords", part.uvs)  # type: ignore[arg-type]
+    if part.vertex_colors is not None:
+        mesh.add_attribute("vertex_color", 3, part.vertex_colors.ravel().tolist())
+    params.update()
+    return mesh
