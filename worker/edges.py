@@ -1,0 +1,137 @@
+"""Edge features: points on image edges, measured across the edge only.
+
+Spacecraft are mostly edges — silhouettes, panel borders, truss members — and an edge's position
+across itself is geometry, hardly touched by a sun a few degrees off. Corner trackers leave them
+out (an edge point cannot be located along the edge), so the pose would rest on a few dozen
+corners. Here each edge point is a 1-D feature: its shift along the edge normal between two
+images, found by Gauss–Newton on intensity profiles sampled across the edge.
+"""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+from numpy.typing import NDArray
+
+Array = NDArray[np.float64]
+Image = NDArray[np.float32]
+
+#: Profile samples: ±PROFILE_HALF_LEN px along the normal, ±PROFILE_HALF_WIDTH px across it.
+PROFILE_HALF_LEN = 7
+PROFILE_HALF_WIDTH = 2
+#: Gaussian weight along the profile, px (keeps a neighbouring edge from pulling the fit).
+PROFILE_SIGMA_PX = 3.0
+#: Gauss–Newton iterations, the update (px) below which they stop, and the largest shift (px).
+SHIFT_ITERATIONS = 8
+SHIFT_TOL_PX = 0.005
+SHIFT_MAX_PX = 6.0
+#: A shift is trusted when the two profiles correlate at least this well after it.
+MIN_PROFILE_NCC = 0.8
+#: Edge point spacing (px) and the Canny thresholds relative to the strongest gradients.
+EDGE_SPACING_PX = 5
+CANNY_LOW, CANNY_HIGH = 0.1, 0.25
+
+
+def _grid() -> tuple[Array, Array, Array]:
+    j = np.arange(-PROFILE_HALF_LEN, PROFILE_HALF_LEN + 1, dtype=np.float64)
+    c = np.arange(-PROFILE_HALF_WIDTH, PROFILE_HALF_WIDTH + 1, dtype=np.float64)
+    J, C = np.meshgrid(j, c, indexing="ij")
+    W = np.exp(-0.5 * (J / PROFILE_SIGMA_PX) ** 2)
+    return J.ravel(), C.ravel(), W.ravel()
+
+
+def _sample(img: Image, x: Array, y: Array) -> Array:
+    """Bilinear samples of ``img`` at float coordinates (any shape)."""
+    shape, n = x.shape, x.size
+    cols = 1024  # remap maps must stay below 32767 in each dimension
+    pad = (-n) % cols
+    mx = np.pad(x.ravel(), (0, pad)).reshape(-1, cols).astype(np.float32)
+    my = np.pad(y.ravel(), (0, pad)).reshape(-1, cols).astype(np.float32)
+    out = cv2.remap(img, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+    return out.ravel()[:n].reshape(shape).astype(np.float64)
+
+
+def detect_edge_points(
+    img: Image,
+    mask: NDArray[np.uint8] | None,
+    max_points: int,
+    spacing_px: int = EDGE_SPACING_PX,
+) -> tuple[Array, Array]:
+    """Edge points (k, 2) and unit normals (k, 2): Canny edges, one point per grid cell.
+
+    The point kept in a cell is its strongest edge pixel; the normal is the image gradient's
+    direction there. ``img`` should be noise-free (a render).
+    """
+    g = cv2.GaussianBlur(img.astype(np.float32), (0, 0), 1.0)
+    gx = cv2.Sobel(g, cv2.CV_32F, 1, 0, ksize=3)
+    gy = cv2.Sobel(g, cv2.CV_32F, 0, 1, ksize=3)
+    mag = np.hypot(gx, gy)
+    top = float(np.percentile(mag, 99.5)) or 1.0
+    u8 = np.clip(g / max(float(g.max()), 1e-6) * 255.0, 0, 255).astype(np.uint8)
+    scale = 255.0 / max(float(g.max()), 1e-6) * 4.0  # Sobel 3×3 sums 4× the unit gradient
+    edges = cv2.Canny(u8, CANNY_LOW * top * scale, CANNY_HIGH * top * scale, L2gradient=True)
+    if mask is not None:
+        edges[mask == 0] = 0
+    ys, xs = np.nonzero(edges)
+    if len(xs) == 0:
+        return np.zeros((0, 2)), np.zeros((0, 2))
+    strength = mag[ys, xs]
+    cell = (ys // spacing_px) * (img.shape[1] // spacing_px + 1) + xs // spacing_px
+    order = np.lexsort((-strength, cell))
+    first = np.ones(len(order), dtype=bool)
+    first[1:] = cell[order][1:] != cell[order][:-1]
+    keep = order[first]
+    keep = keep[np.argsort(-strength[keep])][:max_points]
+    pts = np.column_stack([xs[keep], ys[keep]]).astype(np.float64)
+    n = np.column_stack([gx[ys[keep], xs[keep]], gy[ys[keep], xs[keep]]]).astype(np.float64)
+    n /= np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-12)
+    return pts, n
+
+
+def normal_shift(
+    template: Image, target: Image, pts: Array, normals: Array, s0: Array | None = None
+) -> tuple[Array, NDArray[np.bool_]]:
+    """Shift s (k,) along each normal with target(p + (j + s) n) ≈ template(p + j n).
+
+    Gauss–Newton on the profiles, with the template's gradient along the normal standing in
+    for the target's at the match (so a noisy target does not bias it). Returns the shifts and
+    which converged within SHIFT_MAX_PX with well-correlated profiles.
+    """
+    k = len(pts)
+    if k == 0:
+        return np.zeros(0), np.zeros(0, dtype=bool)
+    J, C, W = _grid()
+    tang = np.column_stack([-normals[:, 1], normals[:, 0]])
+    base_x = pts[:, :1] + C * tang[:, :1]
+    base_y = pts[:, 1:] + C * tang[:, 1:]
+    tx = base_x + J * normals[:, :1]
+    ty = base_y + J * normals[:, 1:]
+    T = _sample(template, tx, ty)
+    # derivative along the normal by central differences of the template profile samples
+    dT = _sample(template, tx + 0.5 * normals[:, :1], ty + 0.5 * normals[:, 1:]) - _sample(
+        template, tx - 0.5 * normals[:, :1], ty - 0.5 * normals[:, 1:]
+    )
+    H = np.sum(W * dT * dT, axis=1)
+    s = np.zeros(k) if s0 is None else s0.astype(np.float64).copy()
+    for _ in range(SHIFT_ITERATIONS):
+        B = _sample(target, tx + s[:, None] * normals[:, :1], ty + s[:, None] * normals[:, 1:])
+        B = B - np.sum(W * B, axis=1, keepdims=True) / W.sum()  # offsets cancel
+        Tc = T - np.sum(W * T, axis=1, keepdims=True) / W.sum()
+        step = -np.sum(W * dT * (B - Tc), axis=1) / np.maximum(H, 1e-12)
+        step = np.clip(step, -1.0, 1.0)
+        s += step
+        if np.abs(step).max() < SHIFT_TOL_PX:
+            break
+    B = _sample(target, tx + s[:, None] * normals[:, :1], ty + s[:, None] * normals[:, 1:])
+    ncc = _weighted_ncc(T, B, W)
+    ok = (np.abs(s) < SHIFT_MAX_PX) & (ncc > MIN_PROFILE_NCC) & (H > 1e-9)
+    return s, ok
+
+
+def _weighted_ncc(a: Array, b: Array, w: Array) -> Array:
+    wn = w / w.sum()
+    am = a - np.sum(wn * a, axis=1, keepdims=True)
+    bm = b - np.sum(wn * b, axis=1, keepdims=True)
+    num = np.sum(wn * am * bm, axis=1)
+    den = np.sqrt(np.sum(wn * am * am, axis=1) * np.sum(wn * bm * bm, axis=1))
+    return num / np.maximum(den, 1e-12)

@@ -1,0 +1,250 @@
+"""Photometry: bringing a camera's reference and our linear renders onto one scale.
+
+The reference comes from a real camera or another renderer (unknown exposure, gamma, colour
+response, blur, noise); the render is linear radiance from our own lights. Everything that
+compares the two goes through here: the render's grey, the reference mapped onto the render's
+tone scale (:func:`reference_on_render_scale`), matched sharpness (:func:`relative_blur`),
+local contrast normalisation for tracking, and the alignment score.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+from numpy.typing import NDArray
+
+from worker.images import FloatImage, srgb_decode, to_display, to_grey
+
+U8 = NDArray[np.uint8]
+
+#: Blur applied before corners and KLT, px (sensor noise and render noise).
+DENOISE_SIGMA_PX = 0.8
+#: Smoothing before the alignment score, px.
+SCORE_SMOOTH_PX = 1.5
+#: Tone-curve fit: quantile bins and the smoothing applied before comparing pixels, px.
+TONE_BINS = 48
+TONE_SMOOTH_PX = 1.5
+#: Largest extra blur matched between reference and render, px.
+BLUR_MAX_PX = 1.5
+#: Local contrast normalisation window (px) and the 8-bit gain of one local σ.
+LCN_SIGMA_PX = 4.0
+LCN_GAIN = 40.0
+LCN_FLOOR = 0.3
+
+
+def render_to_grey(render_linear: FloatImage) -> FloatImage:
+    """Display-encoded grey [0, 1] of a linear render: the light is averaged over the channels
+    first, then encoded (see :func:`reference_on_render_scale` for why the order matters)."""
+    return to_display(to_grey(render_linear))
+
+
+def match_histogram(source: FloatImage, template: FloatImage, bins: int = 4096) -> FloatImage:
+    """Map ``source`` monotonically so its grey-level distribution equals ``template``'s."""
+    s_hist, edges = np.histogram(source, bins=bins, range=(0.0, 1.0))
+    t_hist, _ = np.histogram(template, bins=bins, range=(0.0, 1.0))
+    s_cdf = np.cumsum(s_hist).astype(np.float64) / max(source.size, 1)
+    t_cdf = np.cumsum(t_hist).astype(np.float64) / max(template.size, 1)
+    centres = 0.5 * (edges[:-1] + edges[1:])
+    mapping = np.interp(s_cdf, t_cdf, centres)
+    idx = np.clip((source * bins).astype(np.int64), 0, bins - 1)
+    return mapping[idx].astype(np.float32)
+
+
+def fit_tone_curve(
+    reference: FloatImage, render: FloatImage, bins: int = TONE_BINS
+) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    """A monotone map (knots x → y) from reference grey levels to the render's, fitted on
+    corresponding pixels of two roughly aligned images.
+
+    Pixels are compared after smoothing and only where the render is locally flat, so a
+    misalignment of a pixel or two does not matter. The knots bin the *render* (noise-free)
+    levels by quantile and take the median reference level in each bin: binning by the noisy
+    image instead would flatten the curve (regression dilution) and bend every edge. Unlike
+    histogram matching, content differences (blur, a few occluded pixels) do not bend it either.
+    """
+    a = cv2.GaussianBlur(reference.astype(np.float32), (0, 0), TONE_SMOOTH_PX)
+    b = cv2.GaussianBlur(render.astype(np.float32), (0, 0), TONE_SMOOTH_PX)
+    gx = cv2.Sobel(b, cv2.CV_32F, 1, 0)
+    gy = cv2.Sobel(b, cv2.CV_32F, 0, 1)
+    grad = np.hypot(gx, gy)
+    lit = b > 0.02 * float(b.max())
+    if lit.sum() < 50:
+        return np.array([0.0, 1.0]), np.array([0.0, 1.0])
+    flat = lit & (grad <= np.percentile(grad[lit], 50))
+    av, bv = a[flat].astype(np.float64), b[flat].astype(np.float64)
+    edges = np.unique(np.quantile(bv, np.linspace(0.0, 1.0, bins + 1)))
+    idx = np.clip(np.searchsorted(edges, bv, side="right") - 1, 0, len(edges) - 2)
+    ref_level, render_level = [float(np.median(a[~lit]))], [0.0]  # the dark sky
+    for k in range(len(edges) - 1):
+        sel = idx == k
+        if sel.sum() >= 10:
+            ref_level.append(float(np.median(av[sel])))
+            render_level.append(float(np.median(bv[sel])))
+    x = np.maximum.accumulate(np.asarray(ref_level))
+    x = x + 1e-6 * np.arange(len(x))  # strictly increasing for interpolation
+    return x, np.maximum.accumulate(np.asarray(render_level))
+
+
+def _gradient_energy(img: FloatImage, sigma_px: float, mask: NDArray[np.bool_]) -> float:
+    g = cv2.GaussianBlur(img, (0, 0), sigma_px) if sigma_px > 0 else img
+    gx = cv2.Sobel(g, cv2.CV_32F, 1, 0, ksize=3)
+    gy = cv2.Sobel(g, cv2.CV_32F, 0, 1, ksize=3)
+    return float(np.mean((gx * gx + gy * gy)[mask]))
+
+
+def relative_blur(reference: FloatImage, render: FloatImage) -> tuple[float, float]:
+    """Extra Gaussian blur (σ_render, σ_reference), px, that makes the two equally sharp.
+
+    A reference from another renderer or a real lens is often softer than our box-filtered
+    render, and a corner blurred differently in the two images is found at a different place.
+    Sharpness is the ratio of gradient energies at a fine and a coarse scale on the target: a
+    contrast difference cancels in the ratio and alignment does not matter; the reference's
+    noise energy (measured on the dark sky) is removed first. At most one of the two is non-zero.
+    """
+    ref = reference.astype(np.float32)
+    ren = render.astype(np.float32)
+    lit = cv2.dilate((ren > 0.02 * float(ren.max())).astype(np.uint8), np.ones((9, 9), np.uint8))
+    target, sky = lit > 0, lit == 0
+    if target.sum() < 200 or sky.sum() < 200:
+        return 0.0, 0.0
+    fine, coarse = DENOISE_SIGMA_PX, 2.0
+
+    def ratio(img: FloatImage, extra: float, denoise: bool) -> float:
+        s1, s2 = float(np.hypot(fine, extra)), float(np.hypot(coarse, extra))
+        e1, e2 = _gradient_energy(img, s1, target), _gradient_energy(img, s2, target)
+        if denoise:
+            e1 -= _gradient_energy(img, s1, sky)
+            e2 -= _gradient_energy(img, s2, sky)
+        return e1 / max(e2, 1e-12)
+
+    grid = np.arange(0.0, BLUR_MAX_PX + 1e-9, 0.05)
+    r_ref = ratio(ref, 0.0, True)
+    r_ren = np.array([ratio(ren, s, False) for s in grid])
+    if r_ref < r_ren[0]:  # the reference is softer: blur the render (ratios fall with blur)
+        return float(np.interp(-r_ref, -r_ren, grid)), 0.0
+    r_refs = np.array([ratio(ref, s, True) for s in grid])
+    return 0.0, float(np.interp(-r_ren[0], -r_refs, grid))
+
+
+def reference_on_render_scale(reference: FloatImage, render_linear: FloatImage) -> FloatImage:
+    """The reference as a display-encoded grey image on the render's tone scale.
+
+    One monotone curve (the camera's response relative to our sRGB encoding) is fitted on the
+    pixels of all channels pooled, applied to each channel, decoded to light, averaged over the
+    channels and encoded again — exactly how :func:`render_to_grey` makes the render's grey. A
+    curve fitted on grey values instead cannot be right for every colour at once (the mean of
+    gamma-encoded channels is not a function of the mean of sRGB-encoded ones), and its error
+    moves the edges between differently coloured materials.
+    """
+    if reference.ndim == 2 or render_linear.ndim == 2:
+        ref = to_grey(reference)
+        return apply_tone_curve(ref, fit_tone_curve(ref, render_to_grey(render_linear)))
+    ref_c = np.moveaxis(reference[..., :3], -1, 0)
+    ren_c = np.moveaxis(to_display(render_linear[..., :3]), -1, 0)
+    curve = fit_tone_curve(np.concatenate(ref_c, axis=0), np.concatenate(ren_c, axis=0))
+    light = srgb_decode(apply_tone_curve(reference[..., :3], curve))
+    return to_display(to_grey(light))
+
+
+def apply_tone_curve(
+    image: FloatImage, curve: tuple[NDArray[np.float64], NDArray[np.float64]]
+) -> FloatImage:
+    x, y = curve
+    return np.interp(image, x, y).astype(np.float32)
+
+
+def alignment_score(reference_grey: FloatImage, render_grey: FloatImage) -> float:
+    """How well a render explains the reference: zero-mean normalised cross-correlation of the
+    two (reference histogram-matched onto the render, both smoothed) over where either shows
+    the target. 1 is a perfect match; it needs no features, so it can referee feature-based
+    steps."""
+    ref = match_histogram(reference_grey, render_grey)
+    a = cv2.GaussianBlur(ref, (0, 0), SCORE_SMOOTH_PX)
+    b = cv2.GaussianBlur(render_grey.astype(np.float32), (0, 0), SCORE_SMOOTH_PX)
+    mask = (content_mask(to_u8(a, 1.0)) > 0) | (content_mask(to_u8(b, 1.0)) > 0)
+    if mask.sum() < 16:
+        return -1.0
+    a, b = a[mask] - a[mask].mean(), b[mask] - b[mask].mean()
+    return float(np.sum(a * b) / max(np.sqrt(np.sum(a * a) * np.sum(b * b)), 1e-12))
+
+
+def to_u8(grey: FloatImage, white: float) -> U8:
+    """Scale so that ``white`` maps to 255, and quantise."""
+    return (np.clip(grey / max(white, 1e-6), 0.0, 1.0) * 255.0 + 0.5).astype(np.uint8)
+
+
+@dataclass
+class NormalisedPair:
+    """Reference and render on one 8-bit scale; ``*_smooth`` are denoised for corners/KLT."""
+
+    ref: U8
+    render: U8
+    ref_smooth: U8
+    render_smooth: U8
+
+
+def normalise_pair(reference_grey: FloatImage, render_grey: FloatImage) -> NormalisedPair:
+    """Bring a reference and a render (both grey, display-encoded) onto one 8-bit scale."""
+    ref = match_histogram(reference_grey, render_grey)
+    white = float(np.percentile(render_grey, 99.9)) or float(render_grey.max()) or 1.0
+    ref8, ren8 = to_u8(ref, white), to_u8(render_grey, white)
+    return NormalisedPair(ref8, ren8, smooth(ref8), smooth(ren8))
+
+
+def normalise_render(render_grey: FloatImage, white: float) -> U8:
+    """A further render on an existing pair's scale (same white point), denoised."""
+    return smooth(to_u8(render_grey, white))
+
+
+def contrast_scale(grey: FloatImage, sigma_px: float = LCN_SIGMA_PX) -> FloatImage:
+    """The divisor of :func:`local_normalise`: local standard deviation plus a floor."""
+    g = cv2.GaussianBlur(grey.astype(np.float32), (0, 0), DENOISE_SIGMA_PX)
+    d = g - cv2.GaussianBlur(g, (0, 0), sigma_px)
+    std = np.sqrt(cv2.GaussianBlur(d * d, (0, 0), sigma_px))
+    return std + LCN_FLOOR * float(np.percentile(std, 99)) + 1e-6
+
+
+def local_normalise_f(
+    grey: FloatImage, scale: FloatImage | None = None, sigma_px: float = LCN_SIGMA_PX
+) -> FloatImage:
+    """Local contrast normalisation, (I − G∗I) / s, in local standard deviations (float).
+
+    It removes what differs slowly between a reference and a render — exposure, gamma, the
+    shading ramp of a sun a few degrees off, inter-reflections — and keeps the local structure
+    KLT aligns, so tracking between them behaves like normalised cross-correlation. ``scale``
+    (from :func:`contrast_scale` of the noise-free render) should be shared by the two images:
+    a scale measured on a noisy reference is inflated most where the signal (and its shot
+    noise) is strongest, which pulls every edge towards its bright side.
+    """
+    g = cv2.GaussianBlur(grey.astype(np.float32), (0, 0), DENOISE_SIGMA_PX)
+    d = g - cv2.GaussianBlur(g, (0, 0), sigma_px)
+    s = contrast_scale(grey, sigma_px) if scale is None else scale
+    return (d / s).astype(np.float32)
+
+
+def local_normalise(
+    grey: FloatImage, scale: FloatImage | None = None, sigma_px: float = LCN_SIGMA_PX
+) -> U8:
+    """:func:`local_normalise_f` as 8-bit around 128 (for OpenCV's KLT)."""
+    return np.clip(128.0 + LCN_GAIN * local_normalise_f(grey, scale, sigma_px), 0, 255).astype(
+        np.uint8
+    )
+
+
+def smooth(img: U8) -> U8:
+    return cv2.GaussianBlur(img, (0, 0), DENOISE_SIGMA_PX)
+
+
+# -- descriptor matching -----------------------------------------------------------------
+
+
+def content_mask(img: U8, dilate_px: int = 4) -> U8:
+    """Pixels showing the target (above the dark background), dilated; 255 inside."""
+    level = max(3, int(0.03 * float(np.percentile(img, 99.5))))
+    mask = (img > level).astype(np.uint8) * 255
+    if dilate_px > 0:
+        k = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * dilate_px + 1,) * 2)
+        mask = cv2.dilate(mask, k)
+    return mask

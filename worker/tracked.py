@@ -1,0 +1,187 @@
+"""The feature sets the learned-Jacobian LM works on, and how each is measured in a render.
+
+- :class:`TrackedFeatures` (the default): fixed points of the reference — Shi–Tomasi corners
+  (2-D) and edge points (1-D, across the edge) — found in each render by tracking from the
+  noise-free render into the reference. One set serves the whole stage.
+- :class:`MatchedFeatures` (the paper): descriptor matches with one render, re-made at each pose.
+
+Both give, per feature, the reference position x̃ (k, 2), a whitening A (k, 2, 2) that weighs
+the residual x̃ − h by what the image can tell (identity for a matched point, the structure
+tensor for a corner, n nᵀ for an edge point), and ``measure(view, guess)`` → positions h in a
+render and which were found.
+"""
+
+from __future__ import annotations
+
+from typing import Protocol
+
+import cv2
+import numpy as np
+from numpy.typing import NDArray
+
+from worker.edges import detect_edge_points, normal_shift
+from worker.features import detect_corners, match_features, structure_whitening, track
+from worker.images import srgb_decode, srgb_encode, to_grey
+from worker.photometry import (
+    content_mask,
+    contrast_scale,
+    local_normalise,
+    local_normalise_f,
+    normalise_pair,
+    normalise_render,
+    reference_on_render_scale,
+    relative_blur,
+)
+from worker.session import RenderedView, Session
+
+Array = NDArray[np.float64]
+
+#: Rounds of render → reference tracking per corner measurement, the shift (px) below which
+#: the rounds stop, and the shift (px) still left after them that drops a corner.
+MEASURE_ROUNDS = 3
+MEASURE_TOL_PX = 0.02
+MEASURE_MAX_LEFT_PX = 0.25
+#: Matches drawn before picking the most trackable (when fewer features are wanted).
+MATCH_POOL = 200
+#: Edge points used at most, per corner allowed.
+EDGES_PER_CORNER = 3
+
+
+class Features(Protocol):
+    x_ref: Array  # (k, 2) positions in the reference
+    A: Array  # (k, 2, 2) whitening of each feature's residual (see structure_whitening)
+    feature_normals: Array  # (k, 2): an edge point's normal, NaN for 2-D features
+
+    def measure(self, view: RenderedView, guess: Array | None) -> tuple[Array, NDArray[np.bool_]]:
+        """Positions (k, 2) of the features in ``view`` and which of them were found."""
+        ...
+
+
+class TrackedFeatures:
+    """Corners and edge points of the reference, found in each render by tracking."""
+
+    def __init__(self, session: Session, view: RenderedView) -> None:
+        pair = normalise_pair(session.reference_grey, view.grey)
+        mask = content_mask(pair.ref_smooth) & content_mask(pair.render_smooth)
+        # The reference's tone curve is mapped onto the render's first: contrast normalisation
+        # removes local gain and offset but not a different gamma, which shifts every blurred
+        # edge towards its dark side.
+        ref_linear = srgb_decode(reference_on_render_scale(session.reference, view.linear))
+        # Equal sharpness too: a corner blurred differently in the two images sits elsewhere.
+        # Blur acts on light, so it is measured and applied in linear units, then encoded.
+        self.blur_render, blur_ref = relative_blur(ref_linear, to_grey(view.linear))
+        self.scale = contrast_scale(self._render_grey(view))
+        self.ref8 = local_normalise(srgb_encode(_blurred(ref_linear, blur_ref)), self.scale)
+        # Corners of the contrast-normalised reference: dim parts (a dark solar array) then
+        # give corners as readily as the bright ones, which spreads the features out.
+        self.corners = detect_corners(self.ref8, session.options.max_features, mask)
+        render_f = local_normalise_f(self._render_grey(view), self.scale)
+        self.ref_f = local_normalise_f(srgb_encode(_blurred(ref_linear, blur_ref)), self.scale)
+        A_corners = structure_whitening(
+            local_normalise(self._render_grey(view), self.scale), self.corners
+        )
+        # Edge points come from the noise-free render; their reference positions are where
+        # the reference shows the same edge, across it.
+        pts, self.normals = detect_edge_points(
+            render_f, mask, EDGES_PER_CORNER * session.options.max_features
+        )
+        s, ok = normal_shift(render_f, self.ref_f, pts, self.normals)
+        self.edges, self.normals = pts[ok] + s[ok, None] * self.normals[ok], self.normals[ok]
+        self.x_ref = np.vstack([self.corners, self.edges])
+        A_edges = np.einsum("ki,kj->kij", self.normals, self.normals)
+        self.A = np.concatenate([A_corners, A_edges])
+        nan = np.full((len(self.corners), 2), np.nan)
+        #: Per-feature normal for edge points, NaN for corners (used when learning J).
+        self.feature_normals = np.vstack([nan, self.normals])
+
+    def _render_grey(self, view: RenderedView) -> Array:
+        if self.blur_render > 0.05:
+            return srgb_encode(_blurred(to_grey(view.linear), self.blur_render))
+        return view.grey
+
+    def measure(self, view: RenderedView, guess: Array | None) -> tuple[Array, NDArray[np.bool_]]:
+        """Where each reference corner is in ``view``, found by tracking the other way.
+
+        KLT takes its gradients from the image it tracks *from*; from the noisy reference they
+        correlate with its (signal-dependent) noise and bias every track towards the bright
+        side of an edge. So the render (noise-free) is tracked into the reference from the
+        current guess h, and h moves by what is left, x̃ − x'(h), until that is negligible.
+        """
+        grey = self._render_grey(view)
+        guess = self.x_ref if guess is None else guess
+        kc = len(self.corners)
+        hc, okc = self._measure_corners(local_normalise(grey, self.scale), guess[:kc])
+        n = self.normals
+        s0 = np.einsum("ki,ki->k", self.edges - guess[kc:], n)
+        s, oke = normal_shift(local_normalise_f(grey, self.scale), self.ref_f, self.edges, n, s0)
+        he = self.edges - s[:, None] * n
+        return np.vstack([hc, he]), np.concatenate([okc, oke])
+
+    def _measure_corners(
+        self, img8: NDArray[np.uint8], guess: Array
+    ) -> tuple[Array, NDArray[np.bool_]]:
+        h = guess.copy()
+        ok = np.ones(len(h), dtype=bool)
+        left = np.zeros_like(h)
+        for _ in range(MEASURE_ROUNDS):
+            x_at, ok_i = track(img8, self.ref8, h, self.corners)
+            ok &= ok_i
+            left = self.corners - x_at
+            h = np.where(ok[:, None], h + left, h)
+            if not ok.any() or np.abs(left[ok]).max() < MEASURE_TOL_PX:
+                break
+        return h, ok & (np.hypot(*left.T) < MEASURE_MAX_LEFT_PX)
+
+
+def _blurred(img: Array, sigma_px: float) -> Array:
+    return cv2.GaussianBlur(img, (0, 0), sigma_px) if sigma_px > 0.05 else img
+
+
+class MatchedFeatures:
+    """Descriptor matches between the reference and one render; other renders are measured
+    by tracking the render's features into them (render → render)."""
+
+    def __init__(self, session: Session, view: RenderedView) -> None:
+        opts = session.options
+        pair = normalise_pair(session.reference_grey, view.grey)
+        m = match_features(
+            pair.ref,
+            pair.render,
+            opts.detector,
+            opts.ratio,
+            max(opts.max_features, MATCH_POOL),
+            mask_render=content_mask(pair.render),
+        )
+        self.view = view
+        self.white = float(np.percentile(view.grey, 99.9)) or 1.0
+        self.base8 = pair.render_smooth
+        keep = _trackable(self.base8, m.render_pts, opts.max_features)
+        self.x_ref, self.x_base = m.ref_pts[keep], m.render_pts[keep]
+        self.A = np.broadcast_to(np.eye(2), (len(self.x_ref), 2, 2))
+        self.feature_normals = np.full((len(self.x_ref), 2), np.nan)
+
+    def measure(self, view: RenderedView, guess: Array | None) -> tuple[Array, NDArray[np.bool_]]:
+        if view is self.view:
+            return self.x_base.copy(), np.ones(len(self.x_base), dtype=bool)
+        return track(self.base8, normalise_render(view.grey, self.white), self.x_base, guess)
+
+
+def _trackable(img8: NDArray[np.uint8], pts: Array, n: int) -> NDArray[np.intp]:
+    """Indices of at most ``n`` points, the most trackable first (largest smaller eigenvalue
+    of the structure tensor), spread out: a point closer than 1/(2√n) of the image's size to
+    one already taken is skipped while others remain. With a handful of features (the
+    paper's four) a blob or a point on an edge would be lost in the first perturbed render."""
+    if len(pts) <= n:
+        return np.arange(len(pts))
+    eig = cv2.cornerMinEigenVal(img8, 7)
+    c = np.clip(np.round(pts).astype(int), 0, [img8.shape[1] - 1, img8.shape[0] - 1])
+    order = np.argsort(-eig[c[:, 1], c[:, 0]], kind="stable")
+    spacing = max(img8.shape) / (2.0 * np.sqrt(n))
+    taken: list[int] = []
+    for i in order:
+        if all(np.hypot(*(pts[i] - pts[j])) >= spacing for j in taken):
+            taken.append(int(i))
+        if len(taken) == n:
+            break
+    rest = [int(i) for i in order if int(i) not in taken]
+    return np.array((taken + rest)[:n], dtype=np.intp)
