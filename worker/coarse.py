@@ -1,0 +1,146 @@
+"""Coarse stage: PnP on ray-cast correspondences between the reference and the render.
+
+One render per iteration: match descriptors between the reference and the render at the
+guess, cast rays through the render's matched features to get their model coordinates, and
+solve PnP against the reference's features (RANSAC, so the inliers agree on one pose). It gets
+into the basin of the learned-Jacobian refinement in a few renders; alone (method 'pnp') it is
+the PnP-refinement baseline.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from numpy.typing import NDArray
+
+from schemas.estimate import StopReason
+from worker.features import match_features
+from worker.images import FloatImage
+from worker.photometry import alignment_score, content_mask, normalise_pair
+from worker.pnp import PnPResult, solve_pnp
+from worker.posemath import axis_angle_to_matrix, increment_between, step_norm
+from worker.session import RenderedView, Session
+
+#: Hand over to the refinement once a PnP step is below this ‖δp‖ (≈ 0.1°, 0.2 % of range):
+#: PnP on ray-cast points jitters at about that level.
+COARSE_HANDOVER_STEP = 1e-2
+#: Silhouettes smaller than this (px²) are not aligned by moments.
+MIN_SILHOUETTE_PX = 50
+#: Smallest rise of the dissimilarity 1 − NCC that counts as a worse render.
+SCORE_MARGIN = 0.002
+#: Iterations the coarse stage may take before handing over.
+COARSE_MAX_ITERATIONS = 5
+
+
+def silhouette_moments(grey: FloatImage, level: float) -> tuple[float, NDArray[np.float64]]:
+    """Area (px²) and centroid (2,) of the pixels brighter than ``level``."""
+    mask = grey > level
+    area = float(mask.sum())
+    if area == 0:
+        return 0.0, np.zeros(2)
+    ys, xs = np.nonzero(mask)
+    return area, np.array([xs.mean(), ys.mean()])
+
+
+def run_moment_alignment(session: Session) -> bool:
+    """Move the target so its lit silhouette has the reference's area and centroid.
+
+    A guess 10–20 % off in range makes descriptor matching fail on thin, repetitive structure;
+    matching the silhouette's area fixes most of the range error and its centroid most of the
+    lateral one, before any feature is needed. The move is kept only if its render aligns
+    better with the reference (alignment score); returns whether it was kept.
+    """
+    view = session.current_view()
+    ref = session.reference_grey
+    sky = float(np.median(ref))
+    noise = 1.4826 * float(np.median(np.abs(ref - sky)))
+    level_ref = sky + max(6.0 * noise, 0.05 * (float(np.percentile(ref, 99.9)) - sky))
+    area_ref, c_ref = silhouette_moments(ref, level_ref)
+    area_ren, c_ren = silhouette_moments(view.grey, 0.05 * float(view.grey.max()))
+    if area_ref < MIN_SILHOUETTE_PX or area_ren < MIN_SILHOUETTE_PX:
+        return False
+    cam = session.camera
+    centre = view.R @ session.renderer.model.centre + view.t
+    d_ren, d_ref = cam.rays(c_ren)[0], cam.rays(c_ref)[0]
+    axis = np.cross(d_ren, d_ref)
+    turn = axis_angle_to_matrix(axis, float(np.arcsin(min(np.linalg.norm(axis), 1.0))))
+    new_centre = turn @ centre * float(np.sqrt(area_ren / area_ref))
+    t_new = new_centre - view.R @ session.renderer.model.centre
+    with session.timed("match"):
+        before = alignment_score(ref, view.grey)
+        moved = session.render_view(view.R, t_new)
+        after = alignment_score(ref, moved.grey)
+    if after <= before:
+        session.record("coarse", 0.0, 0.0, 0.0, False, 0)
+        return False
+    step = step_norm(increment_between(view.R, view.t, view.R, t_new), session.range_)
+    session.accept(moved)
+    session.record("coarse", 0.0, step, 0.0, True, 0)
+    return True
+
+
+def run_pnp_stage(
+    session: Session, max_iterations: int, stop_step: float
+) -> tuple[bool, StopReason | None]:
+    """Iterate PnP from the session's pose. Returns (made_progress, stop reason if converged).
+
+    Each PnP pose is judged by its render, not by its own reprojection error: PnP on ray-cast
+    points can fit a wrong pose well (a small or nearly planar target leaves it ambiguous), so
+    a step whose render explains the reference worse (lower alignment score) is undone and the
+    stage ends. Stops too after ``max_iterations`` or when a step is below ``stop_step``.
+    """
+    progress = False
+    best: tuple[RenderedView, float, float] | None = None  # view, score, its PnP cost
+    for _ in range(min(max_iterations, session.iterations_left)):
+        view = session.current_view()
+        with session.timed("match"):
+            score = alignment_score(session.reference_grey, view.grey)
+        if best is not None and _clearly_worse(score, best[1]):
+            session.accept(best[0])
+            session.record("coarse", best[2], 0.0, 0.0, False, 0)
+            return progress, "pnp_converged"
+        cost = best[2] if best is not None else np.nan
+        best = (view, score, cost)
+        res = _pnp_from(session, view)
+        if res is None:
+            return progress, None
+        step = step_norm(increment_between(view.R, view.t, res.R, res.t), session.range_)
+        session.R, session.t = res.R, res.t
+        best = (view, score, res.rms_px**2) if not np.isfinite(cost) else best
+        progress = True
+        session.record("coarse", res.rms_px**2, step, 0.0, True, int(res.inliers.sum()))
+        if step < stop_step:
+            return progress, "pnp_converged"
+    return progress, None
+
+
+def _clearly_worse(score: float, best: float) -> bool:
+    """Whether an alignment score is worse than the best by more than its jitter.
+
+    The score's dissimilarity 1 − NCC grows about quadratically with misalignment; a render
+    is judged worse only when it grows by half and by SCORE_MARGIN, so sub-degree PnP moves on
+    a small target (where the score is blunt) are not undone by noise in the score.
+    """
+    return (1.0 - score) > 1.5 * (1.0 - best) + SCORE_MARGIN
+
+
+def _pnp_from(session: Session, view: RenderedView) -> PnPResult | None:
+    """Match the reference to ``view``, cast rays through the render's features, solve PnP."""
+    opts = session.options
+    with session.timed("match"):
+        pair = normalise_pair(session.reference_grey, view.grey)
+        n = max(opts.max_features, 300)
+        matches = match_features(
+            session.reference_described(opts.detector, n),
+            pair.render,
+            opts.detector,
+            opts.ratio,
+            n,
+            mask_render=content_mask(pair.render),
+        )
+    if len(matches) < max(opts.min_features, 8):
+        return None
+    with session.timed("pnp"):
+        X, hit = session.renderer.raycast(view.R, view.t, matches.render_pts)
+        return solve_pnp(
+            session.camera, X[hit], matches.ref_pts[hit], view.R, view.t, seed=opts.seed
+        )

@@ -1,0 +1,247 @@
+"""The estimation pipeline: coarse stage, learned-Jacobian refinement, and the result.
+
+'default': PnP on ray-cast correspondences until its steps are small (falling back to the
+learned-Jacobian LM on descriptor matches when PnP cannot run), then the learned-Jacobian LM on
+reference corners tracked with KLT. 'paper': the LM on four matches per iteration from the start.
+'pnp': the PnP stage alone (a baseline).
+"""
+
+from __future__ import annotations
+
+import time
+from collections import OrderedDict
+from dataclasses import dataclass
+
+import numpy as np
+
+from schemas.estimate import Covariance, Errors, EstimateRequest, EstimateResult, StopReason
+from schemas.options import EstimateOptions
+from worker.camera import PinholeCamera
+from worker.coarse import (
+    COARSE_HANDOVER_STEP,
+    COARSE_MAX_ITERATIONS,
+    run_moment_alignment,
+    run_pnp_stage,
+)
+from worker.exceptions import EmptyRenderError, TooFewFeaturesError
+from worker.images import FloatImage, check_size, to_grey
+from worker.lm import covariance
+from worker.meshes import LoadedModel
+from worker.metrics import rotation_error_deg, speed_score, translation_error
+from worker.photometry import alignment_score
+from worker.posemath import pose_from_schema, pose_to_schema
+from worker.refine import run_lm_stage
+from worker.renderer import LightingSpec, Renderer
+from worker.session import CancelCheck, ProgressCallback, RenderedView, Session
+
+#: Renderers kept per process (scene build and kernel tracing are paid once per entry).
+RENDERER_CACHE_SIZE = 3
+#: Shortest side of a perturbation render, px.
+MIN_PERTURBATION_SIDE_PX = 256
+#: Fraction of a coverage grid the target must cover at the initial pose.
+MIN_COVERAGE = 1e-3
+#: Alignment score (NCC of the final render with the reference) a converged estimate needs:
+#: a stop rule can fire far from the answer, but the render then fails to explain the image.
+MIN_CONVERGED_SCORE = 0.7
+CONVERGED_REASONS = {"step_below_epsilon", "cost_converged", "pnp_converged"}
+
+_renderers: OrderedDict[tuple[object, ...], Renderer] = OrderedDict()
+
+
+@dataclass
+class Estimate:
+    """The result and the renders the artifacts are drawn from."""
+
+    result: EstimateResult
+    reference: FloatImage
+    views: dict[str, RenderedView]
+
+
+def texture_level(model: LoadedModel, camera: PinholeCamera, R: np.ndarray, t: np.ndarray) -> int:
+    """Half-octave level of the image scale (px per scene unit) at the target's range."""
+    d = float(np.linalg.norm(R @ model.centre + t))
+    return round(2.0 * np.log2(0.5 * (camera.fx + camera.fy) / d))
+
+
+def get_renderer(
+    model: LoadedModel,
+    camera: PinholeCamera,
+    lighting: LightingSpec,
+    scales: tuple[float, ...],
+    spp: int,
+    level: int = 0,
+) -> Renderer:
+    """A renderer for (model, camera, scales, texture level), reused across estimates."""
+    key = (model.sha256, camera, scales, level)
+    renderer = _renderers.get(key)
+    if renderer is None:
+        renderer = Renderer(
+            model, camera, lighting, scales=scales, spp=spp, px_per_unit=2.0 ** (level / 2.0)
+        )
+        _renderers[key] = renderer
+        while len(_renderers) > RENDERER_CACHE_SIZE:
+            _renderers.popitem(last=False)
+    else:
+        _renderers.move_to_end(key)
+        renderer.set_lighting(lighting)
+    return renderer
+
+
+def perturbation_scale(requested: float, camera: PinholeCamera) -> float:
+    """The perturbation renders' scale: as requested, but never below MIN_PERTURBATION_SIDE_PX
+    on the short side (a small image halved leaves the tracker too little to learn from)."""
+    floor = MIN_PERTURBATION_SIDE_PX / min(camera.width, camera.height)
+    return min(1.0, round(max(requested, floor), 3))
+
+
+def lighting_spec(request_lighting: object) -> LightingSpec:
+    lt = request_lighting
+    return LightingSpec(tuple(lt.sun_direction), lt.sun_irradiance, lt.ambient)  # type: ignore
+
+
+def estimate(
+    model: LoadedModel,
+    reference: FloatImage,
+    request: EstimateRequest,
+    on_iteration: ProgressCallback | None = None,
+    should_cancel: CancelCheck | None = None,
+) -> Estimate:
+    """Estimate the pose of ``model`` in ``reference`` (float image, [0, 1], display-encoded)."""
+    start = time.perf_counter()
+    opts = request.options.resolved()
+    camera = PinholeCamera.from_schema(request.camera)
+    check_size(reference, camera.width, camera.height)
+    scale = perturbation_scale(opts.perturbation_scale, camera)
+    scales = (1.0,) if scale == 1.0 else (1.0, scale)
+    R0, t0 = pose_from_schema(request.initial_pose)
+    renderer = get_renderer(
+        model,
+        camera,
+        lighting_spec(request.lighting),
+        scales,
+        opts.spp,
+        texture_level(model, camera, R0, t0),
+    )
+    if renderer.coverage(R0, t0) < MIN_COVERAGE:
+        raise EmptyRenderError(
+            "the model is not visible at the initial pose (check t, the attitude and the camera)"
+        )
+    truth = pose_from_schema(request.ground_truth) if request.ground_truth else None
+    renders_before = renderer.stats.renders
+    session = Session(
+        renderer=renderer,
+        reference=reference,
+        reference_grey=to_grey(reference),
+        options=opts,
+        R=R0,
+        t=t0,
+        truth=truth,
+        on_iteration=on_iteration,
+        should_cancel=should_cancel,
+        rng=np.random.default_rng(opts.seed),
+    )
+    reason = _run_pipeline(session)
+    session.views["final"] = session.current_view()
+    session.views.setdefault("second", session.views["final"])
+    result = _result(
+        session, reason, opts, R0, t0, truth, start, renderer.stats.renders - renders_before
+    )
+    return Estimate(result, session.reference, session.views)
+
+
+def _run_pipeline(session: Session) -> StopReason:
+    opts = session.options
+    coarse_ok = False
+    pnp_reason: StopReason | None = None
+    if opts.coarse == "pnp":
+        run_moment_alignment(session)
+        alone = opts.refine_features == "none"
+        coarse_ok, pnp_reason = run_pnp_stage(
+            session,
+            opts.max_iterations if alone else COARSE_MAX_ITERATIONS,
+            opts.epsilon if alone else COARSE_HANDOVER_STEP,
+        )
+        if alone:
+            if not coarse_ok:
+                raise TooFewFeaturesError(
+                    "too few matched features for PnP between the reference and the render"
+                )
+            return pnp_reason or "max_iterations"
+    if opts.refine_features == "klt" and not coarse_ok:
+        run_lm_stage(session, "matches", "coarse", handover_step=COARSE_HANDOVER_STEP)
+    outcome = run_lm_stage(session, opts.refine_features, "refine")
+    return "max_iterations" if outcome == "handover" else outcome
+
+
+def _errors(
+    truth: tuple[np.ndarray, np.ndarray] | None, R: np.ndarray, t: np.ndarray
+) -> Errors | None:
+    if truth is None:
+        return None
+    te = translation_error(truth[1], t)
+    return Errors(
+        rotation_deg=rotation_error_deg(truth[0], R),
+        translation=te,
+        translation_pct_of_range=100.0 * te / float(np.linalg.norm(truth[1])),
+        speed_score=speed_score(truth[0], truth[1], R, t),
+    )
+
+
+def _covariance(session: Session) -> Covariance | None:
+    if session.fit is None:
+        return None
+    J, r, w = session.fit
+    if len(r) < 8:
+        return None
+    C, sigma = covariance(J, r, w)
+    # A rotation by angle a has |q| = tan(a/2) ≈ a/2, so σ_angle = 2 σ_q.
+    sig_q = np.sqrt(np.clip(np.diag(C)[:3], 0.0, None))
+    sig_t = np.sqrt(np.clip(np.diag(C)[3:], 0.0, None))
+    return Covariance(
+        matrix=C.tolist(),
+        sigma_rotation_deg=np.degrees(2.0 * sig_q).tolist(),
+        sigma_translation=sig_t.tolist(),
+        residual_sigma_px=sigma,
+    )
+
+
+def _result(
+    session: Session,
+    reason: StopReason,
+    opts: EstimateOptions,
+    R0: np.ndarray,
+    t0: np.ndarray,
+    truth: tuple[np.ndarray, np.ndarray] | None,
+    start: float,
+    renders: int,
+) -> EstimateResult:
+    import mitsuba as mi
+
+    fit = session.fit
+    final = session.views["final"]
+    with session.timed("match"):
+        score = alignment_score(session.reference_grey, final.grey)
+    features = len(fit[2]) if fit else (session.history[-1].features if session.history else 0)
+    rms = float(np.sqrt(session.history[-1].cost)) if session.history else 0.0
+    if fit is not None and len(fit[1]):
+        J, r, w = fit
+        rms = float(np.sqrt(np.sum(np.repeat(w, 2) * r**2) / max(np.sum(w), 1e-12) / 2))
+    return EstimateResult(
+        pose=pose_to_schema(session.R, session.t),
+        initial_pose=pose_to_schema(R0, t0),
+        converged=reason in CONVERGED_REASONS and score >= MIN_CONVERGED_SCORE,
+        reason=reason,
+        iterations=session.iterations,
+        renders=renders,
+        seconds=time.perf_counter() - start,
+        method=opts.method,
+        history=session.history,
+        covariance=_covariance(session),
+        features=int(features),
+        rms_residual_px=rms,
+        alignment_score=score,
+        errors=_errors(truth, session.R, session.t),
+        initial_errors=_errors(truth, R0, t0),
+        timings_s={k: round(v, 4) for k, v in session.timings_s.items()},
+        variant=str(mi.variant()),
+    )

@@ -1,0 +1,119 @@
+"""Levenberg–Marquardt steps and pose-consistent outlier rejection on the learned linear model.
+
+Residuals are r = x̃ − x̂ (reference minus render, px), stacked (u₁, v₁, u₂, v₂, …); the model
+is r ≈ J δp. Per-feature weights w (one per feature, applied to both its rows) come from IRLS
+with Tukey's biweight, and a RANSAC over δp rejects features that no single pose explains.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from numpy.typing import NDArray
+
+Array = NDArray[np.float64]
+
+#: Tukey biweight tuning constant (95 % efficiency), in robust standard deviations.
+TUKEY_C = 4.685
+#: Features drawn per RANSAC hypothesis.
+RANSAC_SET_SIZE = 6
+#: Floor of the robust residual scale, px: KLT cannot resolve motion below this.
+MIN_SCALE_PX = 0.05
+
+
+def expand(w: Array) -> Array:
+    """Per-feature weights (k,) to per-row weights (2k,)."""
+    return np.repeat(w, 2)
+
+
+def lm_step(J: Array, r: Array, lam: float, w: Array | None = None) -> Array:
+    """δp = (JᵀWJ + λ diag(JᵀWJ))⁻¹ JᵀW r, shape (6,). ``w`` is per feature (k,) or None."""
+    Wr = expand(w) if w is not None else np.ones(len(r))
+    JtW = J.T * Wr
+    A = JtW @ J
+    g = JtW @ r
+    D = np.diag(np.diag(A))
+    return np.linalg.solve(A + lam * D + 1e-12 * np.eye(6) * np.trace(A), g)
+
+
+def feature_norms(r: Array) -> Array:
+    """Per-feature residual lengths ‖(u, v)‖, shape (k,)."""
+    return np.hypot(r[0::2], r[1::2])
+
+
+def robust_scale(norms: Array) -> float:
+    """A robust standard deviation of 2-D residuals from their lengths (MAD-like), px."""
+    if len(norms) == 0:
+        return MIN_SCALE_PX
+    # For isotropic Gaussian errors ‖e‖ is Rayleigh(σ) with median σ·√(2 ln 2).
+    return max(float(np.median(norms)) / np.sqrt(2 * np.log(2)), MIN_SCALE_PX)
+
+
+def tukey_weights(norms: Array, scale: float) -> Array:
+    """Tukey biweight per feature: (1 − (e/cσ)²)² inside cσ, 0 outside."""
+    u = norms / (TUKEY_C * scale)
+    return np.where(u < 1.0, (1.0 - u**2) ** 2, 0.0)
+
+
+def weighted_cost(r: Array, w: Array | None = None) -> float:
+    """Mean (weighted) squared residual per feature, px²."""
+    sq = r[0::2] ** 2 + r[1::2] ** 2
+    if w is None:
+        return float(np.mean(sq)) if len(sq) else 0.0
+    return float(np.sum(w * sq) / max(np.sum(w), 1e-12))
+
+
+def irls_increment(
+    J: Array, r: Array, iterations: int = 5, w0: Array | None = None
+) -> tuple[Array, Array, float]:
+    """Robust Gauss–Newton increment by IRLS; returns (δp, weights (k,), scale px)."""
+    k = len(r) // 2
+    w = np.ones(k) if w0 is None else w0.copy()
+    dp = lm_step(J, r, 0.0, w)
+    scale = MIN_SCALE_PX
+    for _ in range(iterations):
+        norms = feature_norms(r - J @ dp)
+        scale = robust_scale(norms[w > 0] if (w > 0).any() else norms)
+        w = tukey_weights(norms, scale)
+        if w.sum() < 3:
+            break
+        dp = lm_step(J, r, 0.0, w)
+    return dp, w, scale
+
+
+def ransac_increment(
+    J: Array,
+    r: Array,
+    rng: np.random.Generator,
+    threshold_px: float,
+    iterations: int = 300,
+) -> NDArray[np.bool_]:
+    """Features consistent with one pose increment: RANSAC over δp on sets of
+    RANSAC_SET_SIZE features (an edge point constrains one direction only, so three are not
+    always enough for six unknowns), scored by the count within ``threshold_px``. Returns the
+    inlier mask (k,), refitted on the best set's inliers."""
+    k = len(r) // 2
+    if k <= RANSAC_SET_SIZE:
+        return np.ones(k, dtype=bool)
+    best = np.zeros(k, dtype=bool)
+    for _ in range(iterations):
+        pick = rng.choice(k, RANSAC_SET_SIZE, replace=False)
+        rows = np.concatenate([[2 * i, 2 * i + 1] for i in pick])
+        dp, *_, sv = np.linalg.lstsq(J[rows], r[rows], rcond=None)
+        if sv[-1] < 1e-9 * sv[0]:
+            continue
+        inl = feature_norms(r - J @ dp) < threshold_px
+        if inl.sum() > best.sum():
+            best = inl
+    if best.sum() >= 3:
+        dp = lm_step(J, r, 0.0, best.astype(np.float64))
+        best = feature_norms(r - J @ dp) < threshold_px
+    return best
+
+
+def covariance(J: Array, r: Array, w: Array) -> tuple[Array, float]:
+    """Pose covariance σ² (JᵀWJ)⁻¹ (6, 6) and the residual σ (px) at the optimum."""
+    Wr = expand(w)
+    A = (J.T * Wr) @ J
+    dof = max(float(np.sum(Wr)) - 6.0, 1.0)
+    sigma2 = float(np.sum(Wr * r**2)) / dof
+    return sigma2 * np.linalg.pinv(A), float(np.sqrt(sigma2))
