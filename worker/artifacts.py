@@ -1,0 +1,112 @@
+"""Images that show the fit, as the paper's figures do.
+
+- ``final_render``: the render at the final pose (display-encoded colour).
+- ``difference``: |reference − final render| after mapping the reference's tone curve onto the
+  render's, colour-mapped; what remains is pose error, lighting mismatch and noise.
+- ``overlay_1``, ``overlay_2``, ``overlay_final``: the reference in red and the render in blue
+  at iteration 1 (the initial guess), 2 and the final one; aligned structure turns magenta.
+- ``convergence``: rotation error, translation error (when the truth is known) and log cost per
+  iteration.
+"""
+
+from __future__ import annotations
+
+import io
+
+import cv2
+import numpy as np
+
+from schemas.estimate import EstimateResult
+from worker.images import FloatImage, encode_png, to_display, to_grey
+from worker.photometry import reference_on_render_scale
+from worker.session import RenderedView
+
+#: Artifact names, in display order.
+ARTIFACT_NAMES = (
+    "overlay_1",
+    "overlay_2",
+    "overlay_final",
+    "difference",
+    "final_render",
+    "convergence",
+)
+
+
+def _stretch(grey: FloatImage) -> FloatImage:
+    top = float(np.percentile(grey, 99.8)) or 1.0
+    return np.clip(grey / top, 0.0, 1.0)
+
+
+def overlay(reference: FloatImage, view: RenderedView) -> bytes:
+    """Reference in red, render in blue (RGB PNG), each stretched black to white."""
+    reference_grey = to_grey(reference)
+    black = float(np.percentile(reference_grey, 50.0))  # the (noisy) sky fills most frames
+    ref = _stretch(np.clip(reference_grey - black, 0.0, None))
+    ren = _stretch(view.grey)
+    rgb = np.stack([ref, np.zeros_like(ref), ren], axis=-1)
+    return encode_png(rgb)
+
+
+def difference(reference: FloatImage, view: RenderedView) -> bytes:
+    """|reference − render| on the render's tone scale, colour-mapped (inferno)."""
+    diff = np.abs(reference_on_render_scale(reference, view.linear) - view.grey)
+    top = max(float(np.percentile(view.grey, 99.8)), 1e-6)
+    u8 = (np.clip(diff / top, 0.0, 1.0) * 255.0 + 0.5).astype(np.uint8)
+    bgr = cv2.applyColorMap(u8, cv2.COLORMAP_INFERNO)
+    return encode_png(np.ascontiguousarray(bgr[..., ::-1]))
+
+
+def convergence_plot(result: EstimateResult) -> bytes:
+    """Per-iteration rotation and translation error (when known) and log cost, PNG."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    hist = result.history
+    it = [h.iteration for h in hist]
+    known = result.errors is not None and result.initial_errors is not None
+    panels = 3 if known else 1
+    fig, axes = plt.subplots(1, panels, figsize=(4.2 * panels, 3.2), dpi=100, squeeze=False)
+    ax = axes[0]
+    if known:
+        init = result.initial_errors
+        assert init is not None
+        rot = [init.rotation_deg] + [h.rotation_error_deg or 0.0 for h in hist]
+        tra = [init.translation] + [h.translation_error or 0.0 for h in hist]
+        ax[0].semilogy([0, *it], [max(v, 1e-5) for v in rot], "o-")
+        ax[0].set(title="Rotation error", xlabel="iteration (0: initial guess)", ylabel="∠ΔR (deg)")
+        ax[1].semilogy([0, *it], [max(v, 1e-9) for v in tra], "o-", color="tab:orange")
+        ax[1].set(
+            title="Translation error",
+            xlabel="iteration (0: initial guess)",
+            ylabel="‖Δt‖ (scene units)",
+        )
+    c = ax[-1]
+    c.semilogy(it, [max(h.cost, 1e-9) for h in hist], "o-", color="tab:green")
+    for h in hist:
+        if not h.accepted:
+            c.plot(h.iteration, max(h.cost, 1e-9), "x", color="tab:red")
+    c.set(title="Cost (x: rejected step)", xlabel="iteration", ylabel="mean squared residual (px²)")
+    for a in ax:
+        a.grid(True, which="both", alpha=0.3)
+    fig.tight_layout()
+    buf = io.BytesIO()
+    fig.savefig(buf, format="png")
+    plt.close(fig)
+    return buf.getvalue()
+
+
+def make_artifacts(
+    result: EstimateResult, reference: FloatImage, views: dict[str, RenderedView]
+) -> dict[str, bytes]:
+    """All artifacts as PNG bytes, keyed by name (see ARTIFACT_NAMES)."""
+    final = views["final"]
+    return {
+        "overlay_1": overlay(reference, views["first"]),
+        "overlay_2": overlay(reference, views.get("second", final)),
+        "overlay_final": overlay(reference, final),
+        "difference": difference(reference, final),
+        "final_render": encode_png(to_display(final.linear)),
+        "convergence": convergence_plot(result),
+    }

@@ -1,0 +1,203 @@
+"""The ``proxpose`` command line.
+
+    proxpose estimate --model MESH --image REF --request REQUEST.json --output DIR
+    proxpose render   --model MESH --request REQUEST.json --pose POSE.json --output IMG.png
+
+Other subcommands (serve, worker, bench, loadtest) are registered by their own modules; each
+is imported only when it runs, so ``estimate`` never loads the web stack and ``serve`` never
+loads Mitsuba in the API process.
+"""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import sys
+from collections.abc import Callable
+from pathlib import Path
+
+from pydantic import ValidationError
+
+#: Exit status for unusable input (bad file, bad JSON, failed validation).
+EXIT_BAD_INPUT = 2
+#: Exit status when the estimate itself fails (too few features, nothing visible, ...).
+EXIT_FAILED = 1
+
+Handler = Callable[[argparse.Namespace], int]
+_EXTRA_COMMANDS: list[tuple[str, str, str]] = [
+    # (name, module, help); the module defines add_arguments(parser) and run(args) -> int
+    ("serve", "service.serve", "run the API, an embedded Redis and a worker"),
+    ("worker", "worker.runner", "run an RQ worker against PROXPOSE_REDIS_URL"),
+    ("bench", "worker.bench", "accuracy and speed against the baselines"),
+    ("loadtest", "service.loadtest", "load-test a running service"),
+]
+
+
+class BadInput(Exception):
+    """A user error, reported in one line."""
+
+
+def _validation_message(exc: ValidationError) -> str:
+    err = exc.errors()[0]
+    where = ".".join(str(p) for p in err["loc"]) or "request"
+    more = f" (and {exc.error_count() - 1} more)" if exc.error_count() > 1 else ""
+    return f"{where}: {err['msg']}{more}"
+
+
+def _read_json(path: Path, model: type) -> object:
+    try:
+        text = path.read_text()
+    except OSError as exc:
+        raise BadInput(f"cannot read {path}: {exc.strerror}") from exc
+    try:
+        return model.model_validate_json(text)  # type: ignore[attr-defined]
+    except ValidationError as exc:
+        raise BadInput(f"{path}: {_validation_message(exc)}") from exc
+
+
+def _read_bytes(path: Path) -> bytes:
+    try:
+        return path.read_bytes()
+    except OSError as exc:
+        raise BadInput(f"cannot read {path}: {exc.strerror}") from exc
+
+
+def _progress(enabled: bool) -> tuple[Callable[..., None] | None, Callable[[], None]]:
+    if not enabled:
+        return None, lambda: None
+    from tqdm import tqdm
+
+    bar = tqdm(total=None, unit="it", desc="estimate", leave=False, file=sys.stderr)
+
+    def update(rec: object, max_iterations: int) -> None:
+        bar.total = max_iterations
+        bar.set_postfix_str(
+            f"{rec.stage} cost={rec.cost:.3g}px² features={rec.features}"  # type: ignore
+        )
+        bar.update(1)
+
+    return update, bar.close
+
+
+def cmd_estimate(args: argparse.Namespace) -> int:
+    from schemas.estimate import EstimateRequest
+    from worker.engine import run_estimate
+
+    request = _read_json(args.request, EstimateRequest)
+    image = _read_bytes(args.image)
+    if not args.model.is_file():
+        raise BadInput(f"model file not found: {args.model}")
+    on_iteration, close = _progress(sys.stderr.isatty() and not args.quiet)
+    try:
+        result, artifacts = run_estimate(args.model, image, request, on_iteration)  # type: ignore
+    finally:
+        close()
+    args.output.mkdir(parents=True, exist_ok=True)
+    for name, png in artifacts.items():
+        (args.output / f"{name}.png").write_bytes(png)
+    (args.output / "result.json").write_text(result.model_dump_json(indent=2))
+    err = result.errors
+    extra = f", error {err.rotation_deg:.4f}° / {err.translation:.4g}" if err else ""
+    print(
+        f"{'converged' if result.converged else 'stopped'} ({result.reason}) after "
+        f"{result.iterations} iterations, {result.renders} renders, {result.seconds:.1f} s"
+        f"{extra} → {args.output / 'result.json'}"
+    )
+    return 0
+
+
+def cmd_render(args: argparse.Namespace) -> int:
+    from schemas.estimate import EstimateRequest
+    from schemas.pose import Pose
+    from schemas.render import RenderRequest
+    from worker.engine import render_png
+
+    request = _read_json(args.request, EstimateRequest)
+    pose = _read_json(args.pose, Pose)
+    if not args.model.is_file():
+        raise BadInput(f"model file not found: {args.model}")
+    render_request = RenderRequest(
+        camera=request.camera,
+        pose=pose,
+        lighting=request.lighting,
+        spp=args.spp,  # type: ignore
+    )
+    args.output.parent.mkdir(parents=True, exist_ok=True)
+    args.output.write_bytes(render_png(args.model, render_request))
+    print(f"wrote {args.output}")
+    return 0
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(prog="proxpose", description=__doc__.split("\n\n")[0])
+    parser.add_argument("-v", "--verbose", action="store_true", help="log progress details")
+    sub = parser.add_subparsers(dest="command", required=True)
+
+    p = sub.add_parser("estimate", help="estimate a pose from one image")
+    p.add_argument("--model", type=Path, required=True, help="mesh: OBJ, PLY, STL, GLB, GLTF")
+    p.add_argument("--image", type=Path, required=True, help="reference: PNG, JPEG or TIFF")
+    p.add_argument("--request", type=Path, required=True, help="REQUEST.json")
+    p.add_argument("--output", type=Path, required=True, help="directory for result + PNGs")
+    p.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
+    p.set_defaults(handler=cmd_estimate)
+
+    p = sub.add_parser("render", help="render the model at a pose")
+    p.add_argument("--model", type=Path, required=True)
+    p.add_argument("--request", type=Path, required=True, help="camera and lighting")
+    p.add_argument("--pose", type=Path, required=True, help="POSE.json: t + q|quaternion|R")
+    p.add_argument("--output", type=Path, required=True, help="PNG to write")
+    p.add_argument("--spp", type=int, default=64, help="samples per pixel (default 64)")
+    p.set_defaults(handler=cmd_render)
+
+    import importlib.util
+
+    for name, module, help_text in _EXTRA_COMMANDS:
+        if importlib.util.find_spec(module) is None:
+            continue
+        p = sub.add_parser(name, help=help_text)
+        p.set_defaults(handler=_lazy(module), module=module)
+        _add_arguments(module, p)
+    return parser
+
+
+def _add_arguments(module: str, parser: argparse.ArgumentParser) -> None:
+    import importlib
+
+    importlib.import_module(module).add_arguments(parser)
+
+
+def _lazy(module: str) -> Handler:
+    def run(args: argparse.Namespace) -> int:
+        import importlib
+
+        return int(importlib.import_module(module).run(args))
+
+    return run
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    logging.basicConfig(
+        level=logging.INFO if args.verbose else logging.WARNING,
+        format="%(asctime)s %(levelname)s %(name)s: %(message)s",
+    )
+    from worker.exceptions import EstimationCancelled, InvalidInputError, ProxposeError
+
+    try:
+        return int(args.handler(args))
+    except BadInput as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return EXIT_BAD_INPUT
+    except InvalidInputError as exc:
+        print(f"error: {exc} [{exc.code}]", file=sys.stderr)
+        return EXIT_BAD_INPUT
+    except (ProxposeError, EstimationCancelled) as exc:
+        print(f"error: {exc} [{exc.code}]", file=sys.stderr)
+        return EXIT_FAILED
+    except KeyboardInterrupt:
+        print("interrupted", file=sys.stderr)
+        return 130
+
+
+if __name__ == "__main__":
+    sys.exit(main())

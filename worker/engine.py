@@ -1,0 +1,73 @@
+"""The engine's entry points, shared by the CLI and the RQ job: bytes and JSON in, result out.
+
+Nothing here knows about HTTP, Redis or RQ; progress and cancellation are plain callbacks.
+"""
+
+from __future__ import annotations
+
+import logging
+from pathlib import Path
+
+from schemas.estimate import EstimateRequest, EstimateResult
+from schemas.render import RenderRequest
+from schemas.settings import get_settings
+from worker.artifacts import make_artifacts
+from worker.camera import PinholeCamera
+from worker.exceptions import EmptyRenderError
+from worker.images import MAX_IMAGE_PIXELS, decode_image, encode_png, to_display
+from worker.meshes import load_model
+from worker.posemath import pose_from_schema
+from worker.session import CancelCheck, ProgressCallback
+from worker.variant import choose_variant
+
+log = logging.getLogger(__name__)
+
+
+def init_renderer_backend() -> str:
+    """Pick the Mitsuba variant from the settings (once per process) and return it."""
+    settings = get_settings()
+    return choose_variant(settings.variant, settings.llvm_path)
+
+
+def run_estimate(
+    model_path: str | Path,
+    image: bytes,
+    request: EstimateRequest,
+    on_iteration: ProgressCallback | None = None,
+    should_cancel: CancelCheck | None = None,
+    with_artifacts: bool = True,
+) -> tuple[EstimateResult, dict[str, bytes]]:
+    """Estimate the pose; returns the result (artifact names filled in) and the PNG artifacts."""
+    init_renderer_backend()
+    from worker.estimator import estimate
+
+    reference = decode_image(image, MAX_IMAGE_PIXELS)
+    model = load_model(model_path)
+    est = estimate(model, reference, request, on_iteration, should_cancel)
+    artifacts: dict[str, bytes] = {}
+    if with_artifacts:
+        artifacts = make_artifacts(est.result, est.reference, est.views)
+    est.result.artifacts = list(artifacts)
+    return est.result, artifacts
+
+
+def render_png(model_path: str | Path, request: RenderRequest) -> bytes:
+    """One render of the model at the request's pose, as an 8-bit sRGB PNG."""
+    init_renderer_backend()
+    from worker.estimator import get_renderer, lighting_spec, texture_level
+
+    model = load_model(model_path)
+    camera = PinholeCamera.from_schema(request.camera)
+    R, t = pose_from_schema(request.pose)
+    renderer = get_renderer(
+        model,
+        camera,
+        lighting_spec(request.lighting),
+        (1.0,),
+        request.spp,
+        texture_level(model, camera, R, t),
+    )
+    if renderer.coverage(R, t) <= 0.0:
+        raise EmptyRenderError("the model is not visible at this pose")
+    linear = renderer.render(R, t, spp=request.spp, seed=request.seed)
+    return encode_png(to_display(linear))

@@ -1,0 +1,206 @@
+"""``proxpose worker``: an RQ worker for the render and estimate queues on PROXPOSE_REDIS_URL.
+
+Start as many as the machine has cores for, on any machine that reaches the Redis: that is how
+the service scales out. Jobs run in the worker process itself (RQ's SimpleWorker, no fork per
+job), so the Mitsuba variant is chosen once, kernels and loaded models stay warm across jobs,
+and no forked child inherits Dr.Jit's thread pool. A stop signal lets the current job finish
+(warm shutdown); another one, more than a second after the first was handled, stops the job
+(it goes back to the queue). Handlers run between renders, so repeat the signal.
+
+Because a job runs in the worker process, a crash of the job (segfault, out of memory) is a
+crash of the worker. The job survives it: its lease lapses and a reaper requeues it for another
+worker (``service.store.leases``). Every worker runs that reaper in a maintenance thread, which
+also keeps the worker's own RQ heartbeat short while a job runs, so that a dead worker leaves
+``/readyz`` within WORKER_TTL_S.
+"""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import os
+import socket
+import threading
+import time
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+if TYPE_CHECKING:
+    import redis
+
+    from schemas.models import ModelPublic
+    from schemas.settings import Settings
+
+log = logging.getLogger(__name__)
+
+#: Worker registration TTL, s: a worker that vanishes drops out of /readyz within about this.
+WORKER_TTL_S = 60
+#: How long a starting worker waits for Redis to answer, s.
+REDIS_WAIT_S = 30.0
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument(
+        "--redis-url", help="Redis to serve (default: $PROXPOSE_REDIS_URL, else the embedded one)"
+    )
+    parser.add_argument("--name", help="worker name (default: <hostname>-<pid>)")
+    parser.add_argument(
+        "--burst", action="store_true", help="quit when the queues are empty instead of waiting"
+    )
+    parser.add_argument(
+        "--no-warmup", action="store_true", help="skip the tiny render that warms the renderer"
+    )
+
+
+def run(args: argparse.Namespace) -> int:
+    import redis
+    from rq.serializers import JSONSerializer
+
+    from schemas.settings import get_settings
+    from service.logs import configure_logging
+    from service.store import Keys, Queues
+    from worker.engine import init_renderer_backend
+    from worker.jobs import register_demo_model
+
+    settings = get_settings()
+    configure_logging(settings.log_format, replace=True)  # not the CLI's text handler
+    url = args.redis_url or settings.effective_redis_url()
+    r = _connect(redis.Redis.from_url(url), url)
+    if r is None:
+        return 1
+    keys = Keys(settings.redis_prefix)
+    variant = init_renderer_backend()
+    demo = register_demo_model(r, keys, settings.data_dir)
+    log.info("renderer variant %s; model '%s' registered", variant, demo.id)
+    if not args.no_warmup:
+        _warm_up(settings.data_dir, demo)
+    _forget_dead_local_workers(r)
+    worker = _worker_class()(
+        Queues(r, keys).all(),
+        connection=r,
+        name=args.name or f"{socket.gethostname()}-{os.getpid()}",
+        serializer=JSONSerializer,
+        worker_ttl=WORKER_TTL_S,
+    )
+    with Maintenance(worker, r, settings):
+        worker.work(burst=args.burst, logging_level="INFO")
+    return 0
+
+
+def _worker_class() -> type[Any]:
+    """RQ's SimpleWorker that tells the maintenance thread when it is running a job."""
+    from rq import SimpleWorker
+
+    from worker.jobs import STOP_NOW
+
+    class ProxposeWorker(SimpleWorker):
+        busy = threading.Event()
+
+        def execute_job(self, job: Any, queue: Any) -> None:
+            self.busy.set()
+            try:
+                super().execute_job(job, queue)
+            finally:
+                self.busy.clear()
+
+        def request_force_stop(self, signum: int, frame: Any) -> None:
+            # RQ raises SystemExit from the signal handler, wherever the job is (inside a
+            # render, a Redis write); instead, a running job stops before its next render and
+            # goes back to the queue, then the worker exits as after a warm stop
+            if self.busy.is_set():
+                self.log.warning("Worker %s: cold shut down: the running job goes back", self.name)
+                STOP_NOW.set()
+                self._stop_requested = True
+                return
+            super().request_force_stop(signum, frame)
+
+    return ProxposeWorker
+
+
+class Maintenance:
+    """A thread beside the worker: every sweep_s it recovers the jobs of dead workers and
+    shortens the TTL of this worker's RQ registration to WORKER_TTL_S (RQ sets 2 min when idle,
+    and the job timeout + 60 s while a job runs in-process), so that a killed worker leaves
+    /readyz within about a minute. EXPIRE is a no-op once the worker has unregistered."""
+
+    def __init__(self, worker: Any, r: redis.Redis, settings: Settings) -> None:
+        from service.store import JobStore, Keys, Reaper
+
+        store = JobStore(r, Keys(settings.redis_prefix), settings.retention_s)
+        self.reaper = Reaper(store, settings.job_max_attempts)
+        self.worker, self.r = worker, r
+        self.sweep_s = max(0.5, settings.job_lease_s / 6.0)
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, name="maintenance", daemon=True)
+
+    def _run(self) -> None:
+        import redis
+
+        while not self._stop.wait(self.sweep_s):
+            try:
+                self.reaper.sweep()
+                self.reaper.sweep_orphans()
+                self.r.expire(self.worker.key, WORKER_TTL_S)
+            except redis.RedisError as exc:
+                log.warning("maintenance: Redis error: %s", exc)
+            except Exception:  # never let the thread die: it guards the other workers' jobs
+                log.exception("maintenance: unexpected error")
+
+    def __enter__(self) -> Maintenance:
+        self._thread.start()
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self._stop.set()
+        self._thread.join(timeout=5.0)
+
+
+def _connect(r: redis.Redis, url: str) -> redis.Redis | None:
+    """``r`` once Redis answers a PING (waiting up to REDIS_WAIT_S), else None."""
+    import redis
+
+    deadline = time.monotonic() + REDIS_WAIT_S
+    while True:
+        try:
+            r.ping()
+            return r
+        except redis.ConnectionError as exc:
+            if time.monotonic() > deadline:
+                log.error("Redis at %s does not answer (%s); set PROXPOSE_REDIS_URL", url, exc)
+                return None
+            time.sleep(0.5)
+
+
+def _forget_dead_local_workers(r: redis.Redis) -> None:
+    """Unregister workers of this host whose process is gone (killed, crashed), so that
+    /readyz does not count them until their heartbeat key expires."""
+    from rq import Worker
+    from rq.worker_registration import unregister
+
+    host = socket.gethostname()
+    for worker in Worker.all(connection=r):
+        if worker.hostname != host or worker.pid in (None, os.getpid()):
+            continue
+        try:
+            os.kill(worker.pid, 0)
+        except ProcessLookupError:
+            log.info("unregistering worker %s (process %d is gone)", worker.name, worker.pid)
+            pipe = r.pipeline()
+            unregister(worker, pipe)
+            pipe.delete(worker.key)
+            pipe.execute()
+        except PermissionError:
+            pass  # alive, another user's
+
+
+def _warm_up(data_dir: Path, demo: ModelPublic) -> None:
+    """One tiny render of the demo model: loads it and compiles the renderer's kernels."""
+    from schemas import Camera, Pose, RenderRequest
+    from worker.engine import render_png
+    from worker.jobs import model_cache_path
+
+    t0 = time.monotonic()
+    camera = Camera(width=64, height=64, fx=64.0, fy=64.0, cx=31.5, cy=31.5)
+    request = RenderRequest(camera=camera, pose=Pose(t=[0.0, 0.0, 40.0], q=[0.3, 0.2, 0.1]), spp=1)
+    render_png(model_cache_path(data_dir, demo), request)
+    log.info("warm-up render in %.1f s", time.monotonic() - t0)
