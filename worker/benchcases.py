@@ -1,0 +1,357 @@
+"""Bench cases: the models, the seeded cases in offset bands, and one estimate per method.
+
+A case is one reference image (``worker.synth.make_case``: another renderer setup, noise,
+exposure, a sun-direction error) with one initial guess; every method is run on the same case,
+so the comparison is paired. The initial offset of a case in band ``(lo, hi]`` is drawn
+uniformly in that interval, the rotation angle in degrees and the translation in percent of the
+range independently (``offsets="edge"`` puts both exactly at ``hi``). Seeds depend only on the
+suite seed, the model name, the band and the case index, so adding a model or raising the case
+count leaves every other case unchanged.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import os
+import re
+import time
+import zlib
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from schemas.camera import Camera
+from schemas.estimate import EstimateResult
+from schemas.options import EstimateOptions
+from worker.meshes import LoadedModel
+from worker.metrics import rotation_error_deg, speed_score, translation_error
+from worker.posemath import pose_from_schema
+from worker.synth import Case, CaseSpec, make_case
+
+log = logging.getLogger(__name__)
+
+DEMO_MODEL = "demo"
+#: Public models under the shared models directory, by bench name.
+SHARED_MODEL_FILES = {
+    "iss": "iss/iss_clean.glb",
+    "aura": "aura/aura.glb",
+    "phobos": "phobos/24878_Phobos_1_1000.glb",
+}
+#: Horizontal and vertical field of view of the bench camera (square pixels, centred), degrees.
+CAMERA_FOV_DEG = 30.0
+#: Iterations of the untimed warm-up estimate per model and method (builds the scenes).
+WARMUP_ITERATIONS = 1
+#: Where failed cases are written, under the output directory.
+CASES_DIRNAME = "cases"
+
+
+class BenchSetupError(ValueError):
+    """A bench argument is unusable (unknown method or option, missing required model)."""
+
+
+@dataclass
+class MethodSpec:
+    """A method row: a method preset plus option overrides, e.g. ``default:n_samples=24``."""
+
+    label: str
+    method: str
+    overrides: dict[str, Any] = field(default_factory=dict)
+
+    def options(self, **extra: Any) -> EstimateOptions:
+        """The estimate options of this row; ``extra`` fields win over the overrides."""
+        return EstimateOptions.model_validate({"method": self.method, **self.overrides, **extra})
+
+
+def parse_method(spec: str) -> MethodSpec:
+    """Parse ``METHOD[:FIELD=VALUE]...`` (values read as JSON when they parse, else strings).
+
+    Raises
+    ------
+    BenchSetupError
+        When the method or a field is unknown or a value is out of range.
+    """
+    name, *pairs = spec.strip().split(":")
+    overrides: dict[str, Any] = {}
+    for pair in pairs:
+        key, sep, raw = pair.partition("=")
+        if not sep or not key:
+            raise BenchSetupError(f"method {spec!r}: expected FIELD=VALUE, got {pair!r}")
+        try:
+            overrides[key] = json.loads(raw)
+        except json.JSONDecodeError:
+            overrides[key] = raw
+    method = MethodSpec(spec.strip(), name, overrides)
+    try:
+        method.options()
+    except ValueError as exc:  # pydantic's ValidationError is a ValueError
+        raise BenchSetupError(f"method {spec!r}: {exc}") from exc
+    return method
+
+
+def band_edges(bands: Sequence[float]) -> list[tuple[float, float]]:
+    """``(lo, hi]`` per band: from the previous band's edge (0 for the first) to its own."""
+    if not bands or any(b <= 0 for b in bands) or sorted(set(bands)) != list(bands):
+        raise BenchSetupError(f"bands must be positive and increasing, got {bands}")
+    return list(zip([0.0, *bands[:-1]], bands, strict=True))
+
+
+def case_seeds(seed: int, model: str, band: float, index: int) -> tuple[int, int, int]:
+    """Seeds (reference and truth, offset magnitudes, estimator) of one case."""
+    entropy = [seed, zlib.crc32(model.encode()), round(band * 1000), index]
+    a, b, c = np.random.SeedSequence(entropy).generate_state(3)
+    return int(a), int(b), int(c) % 2**31
+
+
+def draw_offset(lo: float, hi: float, draw: str, rng: np.random.Generator) -> tuple[float, float]:
+    """Initial offset (rotation deg, translation fraction of the range) in band ``(lo, hi]``."""
+    if draw == "edge":
+        return hi, hi / 100.0
+    rot_deg, trans_pct = hi - rng.uniform(0.0, hi - lo, size=2)  # (lo, hi], never exactly lo
+    return float(rot_deg), float(trans_pct) / 100.0
+
+
+def resolve_models(
+    names: list[str], models_dir: Path, data_dir: Path, require_shared: bool
+) -> tuple[list[tuple[str, Path]], list[str]]:
+    """Paths of the bench models, and a message per model skipped because its file is absent.
+
+    ``demo`` is the procedural satellite (written under ``data_dir`` on first use), ``iss``,
+    ``aura``, ``phobos`` are looked up in ``models_dir``; any other name is a mesh file path.
+    """
+    found: list[tuple[str, Path]] = []
+    skipped: list[str] = []
+    for name in names:
+        if name == DEMO_MODEL:
+            from worker.demosat import demo_satellite_path
+
+            found.append((name, demo_satellite_path(data_dir).resolve()))
+            continue
+        path = models_dir / SHARED_MODEL_FILES[name] if name in SHARED_MODEL_FILES else Path(name)
+        label = name if name in SHARED_MODEL_FILES else path.stem
+        if path.is_file():
+            found.append((label, path.resolve()))
+        elif require_shared or name not in SHARED_MODEL_FILES:
+            raise BenchSetupError(f"model {name!r}: {path} not found")
+        else:
+            skipped.append(f"skipping model {name!r}: {path} not found")
+    return found, skipped
+
+
+def bench_camera(size_px: int) -> Camera:
+    """A square camera of ``size_px`` with a CAMERA_FOV_DEG field of view, centred."""
+    f = 0.5 * size_px / np.tan(np.radians(0.5 * CAMERA_FOV_DEG))
+    c = 0.5 * (size_px - 1)
+    return Camera(width=size_px, height=size_px, fx=float(f), fy=float(f), cx=c, cy=c)
+
+
+@dataclass
+class CaseTask:
+    """Everything one case needs; plain data, so it can be sent to a worker process."""
+
+    model: str
+    model_path: str
+    band: float
+    band_lo: float
+    index: int
+    size_px: int
+    seed: int
+    offsets: str
+    methods: list[MethodSpec]
+    output_dir: str | None = None
+    save_cases: str = "failed"
+
+    @property
+    def case_id(self) -> str:
+        return f"{self.model}-b{self.band:g}-{self.index:02d}"
+
+
+@dataclass
+class CaseOutcome:
+    """The records of one case (one per method) and the warm-ups run before it, if any."""
+
+    records: list[dict[str, Any]]
+    warmups: list[dict[str, Any]]
+
+
+RecordCallback = Callable[[dict[str, Any]], None]
+_warmed: set[tuple[str, str]] = set()  # (model path, method label) warmed up in this process
+
+
+def build_case(task: CaseTask, model: LoadedModel) -> tuple[Case, int]:
+    """The case of ``task`` (reference, request, truth) and its estimator seed."""
+    ref_seed, offset_seed, est_seed = case_seeds(task.seed, task.model, task.band, task.index)
+    rot_deg, frac = draw_offset(
+        task.band_lo, task.band, task.offsets, np.random.default_rng(offset_seed)
+    )
+    return make_case(model, bench_camera(task.size_px), CaseSpec(rot_deg, frac), ref_seed), est_seed
+
+
+def run_case(task: CaseTask, on_record: RecordCallback | None = None) -> CaseOutcome:
+    """Render the case of ``task`` and run every method on it (warming each method up once)."""
+    from worker.meshes import load_model
+
+    model = load_model(task.model_path)
+    case, est_seed = build_case(task, model)
+    reference = case.reference.astype(np.float32) / 255.0  # as decode_image reads an 8-bit PNG
+    warmups = [
+        warm_up(model, task.model_path, reference, case, spec)
+        for spec in task.methods
+        if (task.model_path, spec.label) not in _warmed
+    ]
+    records = []
+    for spec in task.methods:
+        record = run_method(model, reference, case, spec, est_seed, _case_fields(task, case))
+        records.append(record)
+        if on_record is not None:
+            on_record(record)
+    if task.output_dir and task.save_cases != "none":
+        save_case(task, case, records)
+    return CaseOutcome(records, warmups)
+
+
+def warm_up(
+    model: LoadedModel, model_path: str, reference: np.ndarray, case: Case, spec: MethodSpec
+) -> dict[str, Any]:
+    """One short untimed estimate, so scene builds and first-call costs stay out of the timings."""
+    from worker.estimator import estimate
+    from worker.exceptions import ProxposeError
+
+    request = case.request.model_copy(
+        update={"options": spec.options(max_iterations=WARMUP_ITERATIONS)}
+    )
+    start = time.perf_counter()
+    try:
+        estimate(model, reference, request)
+    except ProxposeError:
+        pass  # the warm-up only has to build the renderers
+    _warmed.add((model_path, spec.label))
+    return {"model_path": model_path, "method": spec.label, "seconds": _elapsed(start)}
+
+
+def _elapsed(start: float) -> float:
+    return round(time.perf_counter() - start, 4)
+
+
+def _case_fields(task: CaseTask, case: Case) -> dict[str, Any]:
+    R0, t0 = pose_from_schema(case.request.initial_pose)
+    offset_t = translation_error(case.t_true, t0)
+    return {
+        "case_id": task.case_id,
+        "model": task.model,
+        "model_path": task.model_path,
+        "band": task.band,
+        "index": task.index,
+        "size_px": task.size_px,
+        "initial_rotation_deg": rotation_error_deg(case.R_true, R0),
+        "initial_translation_pct": 100.0 * offset_t / float(np.linalg.norm(case.t_true)),
+        "initial_speed_score": speed_score(case.R_true, case.t_true, R0, t0),
+    }
+
+
+def run_method(
+    model: LoadedModel,
+    reference: np.ndarray,
+    case: Case,
+    spec: MethodSpec,
+    est_seed: int,
+    fields: dict[str, Any],
+) -> dict[str, Any]:
+    """One timed estimate; an engine error (or a crash) is recorded as a failed case."""
+    from worker.estimator import estimate
+    from worker.exceptions import ProxposeError
+
+    seed = spec.overrides.get("seed", est_seed)
+    request = case.request.model_copy(update={"options": spec.options(seed=seed)})
+    record: dict[str, Any] = {**fields, "method": spec.label, "estimator_seed": seed}
+    start = time.perf_counter()
+    try:
+        result = estimate(model, reference, request).result
+    except ProxposeError as exc:
+        return {**record, **_failure(exc.code, exc), "seconds": _elapsed(start)}
+    except Exception as exc:  # a bug in one method must not end a long run; it is reported
+        log.exception("method %s crashed on case %s", spec.label, fields["case_id"])
+        return {**record, **_failure("crash", exc), "seconds": _elapsed(start)}
+    return {**record, **_outcome(result), "seconds": _elapsed(start)}
+
+
+def _failure(code: str, exc: Exception) -> dict[str, Any]:
+    return {
+        "failed": True,
+        "error_code": code,
+        "error": f"{type(exc).__name__}: {exc}",
+        "rotation_deg": None,
+        "translation_pct": None,
+        "translation": None,
+        "speed_score": None,
+        "iterations": None,
+        "renders": None,
+    }
+
+
+def _outcome(result: EstimateResult) -> dict[str, Any]:
+    err = result.errors
+    assert err is not None  # every bench request carries the ground truth
+    return {
+        "failed": False,
+        "error_code": None,
+        "error": None,
+        "rotation_deg": err.rotation_deg,
+        "translation_pct": err.translation_pct_of_range,
+        "translation": err.translation,
+        "speed_score": err.speed_score,
+        "iterations": result.iterations,
+        "renders": result.renders,
+        "engine_seconds": result.seconds,
+        "converged": result.converged,
+        "reason": result.reason,
+        "features": result.features,
+        "rms_residual_px": result.rms_residual_px,
+        "timings_s": result.timings_s,
+        "history": [
+            {
+                "stage": h.stage,
+                "cost_px2": h.cost,
+                "features": h.features,
+                "renders": h.renders,
+                "accepted": h.accepted,
+                "seconds": h.seconds,
+                "rotation_deg": h.rotation_error_deg,
+                "translation": h.translation_error,
+            }
+            for h in result.history
+        ],
+    }
+
+
+def save_case(task: CaseTask, case: Case, records: list[dict[str, Any]]) -> None:
+    """Write the reference and one request per method, for ``proxpose estimate`` to replay.
+
+    With ``save_cases="failed"`` only cases some method did not solve are written; the
+    records of the written methods get a ``reproduce`` command line.
+    """
+    from worker.benchreport import is_success
+
+    chosen = [r for r in records if task.save_cases == "all" or not is_success(r)]
+    if not chosen or task.output_dir is None:
+        return
+    import cv2
+
+    folder = Path(task.output_dir) / CASES_DIRNAME / task.case_id
+    folder.mkdir(parents=True, exist_ok=True)
+    cv2.imwrite(str(folder / "reference.png"), case.reference[..., ::-1])
+    specs = {s.label: s for s in task.methods}
+    for record in chosen:
+        spec = specs[record["method"]]
+        name = "request_" + re.sub(r"[^A-Za-z0-9]+", "_", spec.label) + ".json"
+        options = spec.options(seed=record["estimator_seed"])
+        request = case.request.model_copy(update={"options": options})
+        (folder / name).write_text(request.model_dump_json(indent=2, exclude_unset=True))
+        rel = os.path.relpath(folder, task.output_dir)
+        record["reproduce"] = (
+            f"proxpose estimate --model {task.model_path} --image {rel}/reference.png "
+            f"--request {rel}/{name} --output {rel}/{Path(name).stem.replace('request_', 'out_')}"
+        )
