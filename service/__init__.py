@@ -1,0 +1,1 @@
+"""The HTTP service (FastAPI). Never imports Mitsuba or OpenCV."""

@@ -1,0 +1,58 @@
+"""Dependencies of the routes, as ``Annotated`` aliases.
+
+The Redis clients live on ``app.state`` (made in the lifespan from the settings of that moment);
+stores are cheap views over them, built per request for the caller (``PrincipalDep``): a job
+or model store sees only the caller's records unless the caller is an admin.
+"""
+
+from __future__ import annotations
+
+from typing import Annotated
+
+import redis
+import redis.asyncio
+from fastapi import Depends, Request
+
+from schemas.settings import Settings, get_settings
+from service.auth import PrincipalDep
+from service.store import JobStore, Keys, ModelStore, Queues
+
+SettingsDep = Annotated[Settings, Depends(get_settings)]
+
+
+def get_redis(request: Request) -> redis.Redis:
+    return request.app.state.redis  # type: ignore[no-any-return]
+
+
+def get_async_redis(request: Request) -> redis.asyncio.Redis:
+    return request.app.state.aredis  # type: ignore[no-any-return]
+
+
+RedisDep = Annotated[redis.Redis, Depends(get_redis)]
+AsyncRedisDep = Annotated[redis.asyncio.Redis, Depends(get_async_redis)]
+
+
+def get_keys(settings: SettingsDep) -> Keys:
+    return Keys(settings.redis_prefix)
+
+
+KeysDep = Annotated[Keys, Depends(get_keys)]
+
+
+def get_job_store(
+    r: RedisDep, keys: KeysDep, settings: SettingsDep, principal: PrincipalDep
+) -> JobStore:
+    return JobStore(r, keys, settings.retention_s, viewer=principal)
+
+
+def get_model_store(r: RedisDep, keys: KeysDep, principal: PrincipalDep) -> ModelStore:
+    return ModelStore(r, keys, viewer=principal)
+
+
+def get_queues(r: RedisDep, keys: KeysDep) -> Queues:
+    return Queues(r, keys)
+
+
+JobStoreDep = Annotated[JobStore, Depends(get_job_store)]
+ModelStoreDep = Annotated[ModelStore, Depends(get_model_store)]
+QueuesDep = Annotated[Queues, Depends(get_queues)]

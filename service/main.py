@@ -1,0 +1,103 @@
+"""The FastAPI application: wiring only (routers, middleware, error handlers, Redis clients).
+
+Run with ``uvicorn service.main:app`` or ``proxpose serve``. Settings are read when the app
+starts (lifespan), not at import, so tests set the environment and clear the settings cache.
+"""
+
+from __future__ import annotations
+
+from collections.abc import AsyncIterator
+from contextlib import asynccontextmanager
+
+import redis
+import redis.asyncio
+from fastapi import FastAPI
+
+from schemas.settings import Settings, get_settings
+from service.auth import AuthMiddleware, document_bearer_auth
+from service.errors import install_error_handlers
+from service.headers import ConfiguredCORSMiddleware, SecurityHeadersMiddleware
+from service.limits import BodySizeLimitMiddleware
+from service.logs import configure_logging
+from service.metrics import Metrics, MetricsMiddleware
+from service.ratelimit import SubmissionRateLimitMiddleware
+from service.routes import docs, estimates, health, metrics, models, pages, renders, session
+from service.store import Keys
+
+#: Seconds to wait for a connection to Redis.
+REDIS_CONNECT_TIMEOUT_S = 5.0
+#: Allowance for the multipart framing and the request JSON beside the largest file, bytes.
+BODY_OVERHEAD_BYTES = 1024 * 1024
+
+DESCRIPTION = """\
+Estimates the 6-DoF pose of a known target (spacecraft, asteroid) from one camera image by
+rendering its 3D model and aligning the render to the image.
+
+Register a model (`/v1/models`; the demo satellite is `demo-sat`), submit an image with a
+request (`POST /v1/estimates`), then poll the job, stream its progress (`/events`), and fetch
+the result and the PNG artifacts. Jobs run on workers that share only Redis with the API.
+"""
+
+
+def request_body_limit(settings: Settings) -> int:
+    """Largest request body accepted: the largest upload plus framing."""
+    return max(settings.max_image_bytes, settings.max_model_bytes) + BODY_OVERHEAD_BYTES
+
+
+@asynccontextmanager
+async def lifespan(app: FastAPI) -> AsyncIterator[None]:
+    settings = get_settings()
+    configure_logging(settings.log_format, quiet=("rq",))
+    url = settings.effective_redis_url()
+    # a hung Redis must not hang requests; the longest blocking call is the render wait
+    app.state.redis = redis.Redis.from_url(
+        url,
+        socket_connect_timeout=REDIS_CONNECT_TIMEOUT_S,
+        socket_timeout=settings.render_timeout_s + REDIS_CONNECT_TIMEOUT_S,
+        health_check_interval=30,
+    )
+    app.state.aredis = redis.asyncio.Redis.from_url(
+        url, socket_connect_timeout=REDIS_CONNECT_TIMEOUT_S, health_check_interval=30
+    )
+    app.state.store_source = (app.state.redis, Keys(settings.redis_prefix))
+    try:
+        yield
+    finally:
+        app.state.store_source = None
+        app.state.redis.close()
+        await app.state.aredis.aclose()
+
+
+def create_app() -> FastAPI:
+    app = FastAPI(
+        title="proxpose",
+        version="0.1.0",
+        summary="Pose of a known target from one image, as a service",
+        description=DESCRIPTION,
+        lifespan=lifespan,
+        docs_url=None,  # /docs is service.routes.docs: Swagger UI from local files
+        redoc_url=None,
+    )
+    app.state.metrics = Metrics()
+    app.state.metrics.watch_store(lambda: getattr(app.state, "store_source", None))
+    # innermost first: the rate limit needs the principal; authentication and the size limit
+    # answer before the body is read; CORS answers preflights before authentication
+    app.add_middleware(SubmissionRateLimitMiddleware, settings=get_settings)
+    app.add_middleware(AuthMiddleware, settings=get_settings)
+    app.add_middleware(
+        BodySizeLimitMiddleware, max_bytes=lambda: request_body_limit(get_settings())
+    )
+    app.add_middleware(ConfiguredCORSMiddleware, settings=get_settings)
+    app.add_middleware(SecurityHeadersMiddleware)
+    app.add_middleware(MetricsMiddleware, metrics=app.state.metrics)  # outermost: counts 4xx
+    install_error_handlers(app)
+    document_bearer_auth(app)
+    for module in (health, metrics, models, estimates, renders, session):
+        app.include_router(module.router)
+    app.include_router(pages.router)  # the browser pages
+    app.include_router(docs.router)  # /docs, offline
+    app.mount("/static", pages.static_files(), name="static")  # public: scripts, styles
+    return app
+
+
+app = create_app()

@@ -1,0 +1,130 @@
+"""Prometheus metrics: HTTP requests of this process, and the queue and job figures of the
+whole deployment read from Redis at scrape time (so every worker's jobs are counted)."""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable, Iterator
+
+import redis
+from prometheus_client import CollectorRegistry, Counter, Histogram
+from prometheus_client.core import (
+    CounterMetricFamily,
+    GaugeMetricFamily,
+    HistogramMetricFamily,
+    Metric,
+)
+from prometheus_client.registry import Collector
+from starlette.types import ASGIApp, Message, Receive, Scope, Send
+
+from service.store import JobStats, Keys, Queues
+
+#: Where the collector finds Redis and the key names (None before the app has started).
+StoreSource = Callable[[], tuple[redis.Redis, Keys] | None]
+#: Buckets of the HTTP latency histogram, s.
+HTTP_LATENCY_BUCKETS_S = (0.005, 0.01, 0.025, 0.05, 0.1, 0.25, 0.5, 1.0, 2.5, 5.0, 10.0, 30.0, 60.0)
+
+
+class Metrics:
+    """The app's registry and its HTTP instruments."""
+
+    def __init__(self) -> None:
+        self.registry = CollectorRegistry()
+        self.requests = Counter(
+            "proxpose_http_requests",
+            "HTTP requests answered, by method, route template and status.",
+            ["method", "route", "status"],
+            registry=self.registry,
+        )
+        self.latency = Histogram(
+            "proxpose_http_request_duration_seconds",
+            "Time to answer an HTTP request (event streams: until they end), s.",
+            ["method", "route"],
+            buckets=HTTP_LATENCY_BUCKETS_S,
+            registry=self.registry,
+        )
+
+    def watch_store(self, source: StoreSource) -> None:
+        """Also expose the queue, worker and job figures kept in Redis."""
+        self.registry.register(StoreCollector(source))
+
+
+class MetricsMiddleware:
+    """Counts each request under its route template (``/v1/estimates/{job_id}``), not its raw
+    path, so that ids do not explode the label space."""
+
+    def __init__(self, app: ASGIApp, metrics: Metrics) -> None:
+        self.app = app
+        self.metrics = metrics
+
+    async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
+        if scope["type"] != "http":
+            await self.app(scope, receive, send)
+            return
+        status = 500
+        t0 = time.perf_counter()
+
+        async def send_status(message: Message) -> None:
+            nonlocal status
+            if message["type"] == "http.response.start":
+                status = message["status"]
+            await send(message)
+
+        try:
+            await self.app(scope, receive, send_status)
+        finally:
+            route = getattr(scope.get("route"), "path", None) or "unmatched"
+            method = scope["method"]
+            self.metrics.requests.labels(method, route, str(status)).inc()
+            self.metrics.latency.labels(method, route).observe(time.perf_counter() - t0)
+
+
+class StoreCollector(Collector):
+    """Reads queue depths, live workers and job statistics from Redis on every scrape."""
+
+    def __init__(self, source: StoreSource) -> None:
+        self.source = source
+
+    def collect(self) -> Iterator[Metric]:
+        up = GaugeMetricFamily("proxpose_redis_up", "1 if Redis answered this scrape.")
+        store = self.source()
+        if store is None:
+            up.add_metric([], 0)
+            yield up
+            return
+        r, keys = store
+        try:
+            queues = Queues(r, keys)
+            depths, workers = queues.depths(), queues.live_workers()
+            snap = JobStats(r, keys).snapshot()
+        except redis.RedisError:
+            up.add_metric([], 0)
+            yield up
+            return
+        up.add_metric([], 1)
+        yield up
+        depth = GaugeMetricFamily(
+            "proxpose_queue_depth", "Jobs waiting, by queue.", labels=["queue"]
+        )
+        for name, n in depths.items():
+            depth.add_metric([name], n)
+        yield depth
+        yield GaugeMetricFamily("proxpose_workers", "Live workers.", value=workers)
+        jobs = CounterMetricFamily(
+            "proxpose_jobs", "Jobs finished, by kind and final status.", labels=["kind", "status"]
+        )
+        for (kind, status), n in sorted(snap.jobs.items()):
+            jobs.add_metric([kind, status], n)
+        yield jobs
+        failures = CounterMetricFamily(
+            "proxpose_job_failures", "Failed jobs, by kind and error code.", labels=["kind", "code"]
+        )
+        for (kind, code), n in sorted(snap.failures.items()):
+            failures.add_metric([kind, code], n)
+        yield failures
+        duration = HistogramMetricFamily(
+            "proxpose_job_duration_seconds", "Run time of finished jobs, s.", labels=["kind"]
+        )
+        for kind, buckets in sorted(snap.buckets.items()):
+            duration.add_metric([kind], buckets, sum_value=snap.duration_sum_s.get(kind, 0.0))
+        yield duration

@@ -1,0 +1,327 @@
+"""Estimate jobs in Redis: one hash per job, indexes for listing, the image, the artifacts.
+
+The status moves queued → running → succeeded | failed | cancelled; the one way back is a
+reaper putting a running job whose worker died back in the queue (``service.store.leases``).
+Every change goes through :meth:`JobStore._transition`, a WATCH/MULTI check-and-set, so that
+the API cancelling a queued job, a worker starting it and a reaper recovering it cannot both
+win; a worker's writes are fenced by its attempt number. A job is created and enqueued in one
+transaction. Terminal jobs, their artifacts and idempotency keys expire after the retention.
+
+A store built for a ``viewer`` (the caller's principal) sees only that principal's jobs, unless
+it is an admin; the workers' stores see everything.
+"""
+
+from __future__ import annotations
+
+import json
+from collections.abc import Callable, Sequence
+from typing import Any
+
+import redis
+from redis.client import Pipeline
+
+from schemas.jobs import JobError
+from service.store.access import Principal
+from service.store.keys import Keys
+from service.store.queues import Queues
+from service.store.records import JobRecord, text, utc_now
+
+#: Positions scanned at most to fill one listing page (expired jobs are skipped and pruned).
+LIST_SCAN_MAX = 1000
+#: States in which a job counts against its owner's cap and may still change.
+ACTIVE_STATUSES = ("queued", "running")
+#: Fields read (under WATCH) to decide a transition.
+GUARD_FIELDS = (
+    "status",
+    "attempts",
+    "owner",
+    "rq_id",
+    "cancel_requested",
+    "timeout_s",
+    "worker",
+    "lost",
+)
+
+#: The job's fields before a transition (None where absent).
+Current = dict[str, str | None]
+Guard = Callable[[Current, Pipeline], bool]
+Fields = dict[str, str] | Callable[[Current], dict[str, str]]
+Extra = Callable[[Pipeline, Current], None]
+
+
+class ActiveJobsLimitError(Exception):
+    """The owner already has ``limit`` queued or running jobs."""
+
+    def __init__(self, limit: int) -> None:
+        super().__init__(f"{limit} estimates of this API key are queued or running")
+        self.limit = limit
+
+
+class JobStore:
+    """Reads and writes estimate jobs. ``r`` is a bytes-returning Redis client."""
+
+    def __init__(
+        self,
+        r: redis.Redis,
+        keys: Keys,
+        retention_s: int,
+        viewer: Principal | None = None,
+        queues: Queues | None = None,
+    ) -> None:
+        self.r = r
+        self.keys = keys
+        self.retention_s = retention_s
+        self.viewer = viewer
+        self.queues = queues if queues is not None else Queues(r, keys)
+
+    # ------------------------------------------------------------------ create and read
+    def create(
+        self,
+        job_id: str,
+        model_id: str,
+        request_json: str,
+        max_iterations: int,
+        image: bytes,
+        fingerprint: str,
+        *,
+        owner: str,
+        timeout_s: int,
+        max_active: int = 0,
+    ) -> JobRecord:
+        """Store a new queued job with its image and enqueue it, in one transaction.
+
+        Raises ActiveJobsLimitError when ``max_active`` > 0 and the owner has that many queued
+        or running jobs (checked in the same transaction, so concurrent submissions cannot
+        overshoot the cap)."""
+        seq = int(self.r.incr(self.keys.jobs_seq))  # type: ignore[arg-type]
+        rq_id = Queues.estimate_rq_id(job_id, 1)
+        record = JobRecord(
+            id=job_id,
+            status="queued",
+            model_id=model_id,
+            created_at=utc_now(),
+            request=request_json,
+            seq=seq,
+            max_iterations=max_iterations,
+            owner=owner,
+            rq_id=rq_id,
+            timeout_s=timeout_s,
+            fingerprint=fingerprint,
+        )
+        fields = {
+            "id": job_id,
+            "status": "queued",
+            "model_id": model_id,
+            "created_at": record.created_at,
+            "request": request_json,
+            "seq": str(seq),
+            "max_iterations": str(max_iterations),
+            "owner": owner,
+            "attempts": "0",
+            "rq_id": rq_id,
+            "timeout_s": str(timeout_s),
+            "fingerprint": fingerprint,
+        }
+        active = self.keys.owner_active(owner)
+        with self.r.pipeline() as pipe:
+            while True:
+                try:
+                    pipe.watch(active)
+                    if max_active and int(pipe.scard(active)) >= max_active:  # type: ignore[arg-type]
+                        raise ActiveJobsLimitError(max_active)
+                    pipe.multi()
+                    pipe.set(self.keys.job_image(job_id), image)
+                    pipe.hset(self.keys.job(job_id), mapping=fields)  # type: ignore[arg-type]
+                    pipe.zadd(self.keys.jobs_index, {job_id: seq})
+                    pipe.zadd(self.keys.owner_jobs(owner), {job_id: seq})
+                    pipe.sadd(active, job_id)
+                    pipe.sadd(self.keys.jobs_queued, job_id)
+                    self.queues.enqueue_estimate(pipe, job_id, rq_id, timeout_s)
+                    pipe.execute()
+                    return record
+                except redis.WatchError:
+                    continue
+
+    def get(self, job_id: str) -> JobRecord | None:
+        """The job, or None if it does not exist or the viewer may not see it."""
+        raw = self.r.hgetall(self.keys.job(job_id))
+        if not raw:
+            return None
+        record = JobRecord.from_hash(raw)  # type: ignore[arg-type]
+        return record if self.viewer is None or self.viewer.can_see(record.owner) else None
+
+    def get_image(self, job_id: str) -> bytes | None:
+        return self.r.get(self.keys.job_image(job_id))  # type: ignore[return-value]
+
+    def get_artifact(self, job_id: str, name: str) -> bytes | None:
+        return self.r.get(self.keys.job_artifact(job_id, name))  # type: ignore[return-value]
+
+    def list_page(self, limit: int, before_seq: int | None) -> tuple[list[JobRecord], int | None]:
+        """Up to ``limit`` jobs, newest first, created before ``before_seq``; and the cursor of
+        the next page (None on the last). Index entries of expired jobs are pruned on the way."""
+        index = self.keys.jobs_index
+        if self.viewer is not None and not self.viewer.admin:
+            index = self.keys.owner_jobs(self.viewer.name)
+        found: list[JobRecord] = []
+        upper = f"({before_seq}" if before_seq is not None else "+inf"
+        scanned = 0
+        while len(found) <= limit and scanned < LIST_SCAN_MAX:
+            batch: list[tuple[bytes, float]] = self.r.zrevrangebyscore(  # type: ignore[assignment]
+                index, upper, "-inf", start=0, num=limit + 1, withscores=True
+            )
+            if not batch:
+                break
+            ids = [text(member) or "" for member, _score in batch]
+            pipe = self.r.pipeline()
+            for job_id in ids:
+                pipe.hgetall(self.keys.job(job_id))
+            gone = []
+            for job_id, raw in zip(ids, pipe.execute(), strict=True):
+                if raw:
+                    found.append(JobRecord.from_hash(raw))
+                else:
+                    gone.append(job_id)
+            if gone:
+                self.r.zrem(index, *gone)
+            scanned += len(batch)
+            upper = f"({int(batch[-1][1])}"
+        page = found[:limit]
+        next_cursor = page[-1].seq if len(found) > limit else None
+        return page, next_cursor
+
+    # ------------------------------------------------------------------ idempotency
+    def claim_idempotency(
+        self, owner: str, key: str, job_id: str, fingerprint: str
+    ) -> dict[str, str] | None:
+        """Reserve the owner's ``key`` for ``job_id``; None if reserved now, else the earlier
+        claim."""
+        value = json.dumps({"job_id": job_id, "fingerprint": fingerprint})
+        name = self.keys.idempotency(owner, key)
+        if self.r.set(name, value, nx=True, ex=self.retention_s):
+            return None
+        raw = self.r.get(name)
+        if raw is None:  # expired between the two calls: claim again
+            return self.claim_idempotency(owner, key, job_id, fingerprint)
+        return json.loads(raw)  # type: ignore[arg-type]
+
+    def release_idempotency(self, owner: str, key: str) -> None:
+        self.r.delete(self.keys.idempotency(owner, key))
+
+    # ------------------------------------------------------------------ endings
+    def finish(
+        self,
+        job_id: str,
+        status: str,
+        *,
+        attempt: int | None = None,
+        from_statuses: Sequence[str] = ACTIVE_STATUSES,
+        error: JobError | None = None,
+        result_json: str | None = None,
+        artifacts: dict[str, bytes] | None = None,
+        traceback: str | None = None,
+    ) -> bool:
+        """Move the job to a terminal ``status``; False if it was not in ``from_statuses`` or,
+        with ``attempt``, if that attempt is no longer the running one (fenced off)."""
+        fields = {"status": status, "finished_at": utc_now()}
+        if error is not None:
+            fields["error"] = error.model_dump_json()
+        if result_json is not None:
+            fields["result"] = result_json
+        if artifacts:
+            fields["artifacts"] = json.dumps(list(artifacts))
+        if traceback:
+            fields["traceback"] = traceback  # for operators (redis-cli); never served
+
+        def guard(current: Current, pipe: Pipeline) -> bool:
+            if current["status"] not in from_statuses:
+                return False
+            return attempt is None or (
+                current["status"] == "running" and current["attempts"] == str(attempt)
+            )
+
+        def extra(pipe: Pipeline, current: Current) -> None:
+            for name, png in (artifacts or {}).items():
+                pipe.set(self.keys.job_artifact(job_id, name), png, ex=self.retention_s)
+            self.release(pipe, job_id, current)
+
+        done = self._transition(job_id, guard, fields, extra, expire=True) is not None
+        if done:
+            self.publish(job_id, "status", {"status": status})
+        return done
+
+    def release(self, pipe: Pipeline, job_id: str, current: Current) -> None:
+        """The clean-up of a job that ends (``pipe`` in MULTI): its image, flags and lease go,
+        and it stops counting as running and against its owner's cap."""
+        pipe.delete(
+            self.keys.job_image(job_id), self.keys.job_cancel(job_id), self.keys.job_lease(job_id)
+        )
+        pipe.srem(self.keys.jobs_running, job_id)
+        pipe.srem(self.keys.jobs_queued, job_id)
+        pipe.srem(self.keys.owner_active(current["owner"] or "anonymous"), job_id)
+
+    def request_cancel(self, job_id: str) -> JobRecord | None:
+        """Cancel a queued job now (and take it out of the queue), or ask a running one to
+        stop; returns the record after."""
+        record = self.get(job_id)
+        if record is None or record.terminal:
+            return record
+        if record.status == "queued" and self.finish(
+            job_id, "cancelled", from_statuses=("queued",)
+        ):
+            self.queues.remove(self.queues.estimates, record.rq_id)
+            return self.get(job_id)
+        # running (or started in the meantime): the worker polls this flag before each render
+        pipe = self.r.pipeline()
+        pipe.set(self.keys.job_cancel(job_id), "1", ex=self.retention_s)
+        pipe.hset(self.keys.job(job_id), "cancel_requested", "1")
+        pipe.execute()
+        self.publish(job_id, "status", {"status": "running", "cancel_requested": True})
+        return self.get(job_id)
+
+    def reconcile(self, record: JobRecord, max_attempts: int) -> JobRecord:
+        """The record, after recovering it if it runs on a worker whose lease has lapsed."""
+        if record.status != "running" or self.r.exists(self.keys.job_lease(record.id)):
+            return record
+        from service.store.leases import Reaper
+
+        Reaper(self, max_attempts).recover(record.id)
+        return self.get(record.id) or record
+
+    # ------------------------------------------------------------------ helpers
+    def publish(self, job_id: str, event: str, data: dict[str, Any]) -> None:
+        self.r.publish(self.keys.job_events(job_id), json.dumps({"event": event, "data": data}))
+
+    def _transition(
+        self,
+        job_id: str,
+        guard: Guard,
+        fields: Fields,
+        extra: Extra | None = None,
+        *,
+        watch: Sequence[str] = (),
+        expire: bool = False,
+    ) -> Current | None:
+        """Atomically: if ``guard`` accepts the job's current fields, set ``fields`` (a dict,
+        or a function of the current fields) and run ``extra`` in the same transaction.
+        Returns the fields before, or None if the guard refused (or the job is gone)."""
+        key = self.keys.job(job_id)
+        with self.r.pipeline() as pipe:
+            while True:
+                try:
+                    pipe.watch(key, *watch)
+                    values = pipe.hmget(key, GUARD_FIELDS)
+                    current = {f: text(v) for f, v in zip(GUARD_FIELDS, values, strict=True)}  # type: ignore[arg-type]
+                    if current["status"] is None or not guard(current, pipe):
+                        pipe.unwatch()
+                        return None
+                    new = fields(current) if callable(fields) else fields
+                    pipe.multi()
+                    pipe.hset(key, mapping=new)  # type: ignore[arg-type]
+                    if expire:
+                        pipe.expire(key, self.retention_s)
+                    if extra is not None:
+                        extra(pipe, current)
+                    pipe.execute()
+                    return current
+                except redis.WatchError:
+                    continue

@@ -1,0 +1,83 @@
+"""A job as stored in its Redis hash, decoded: strings and JSON, no behaviour."""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass, field
+from datetime import UTC, datetime
+from typing import Any
+
+from schemas.jobs import TERMINAL_STATUSES, Progress
+
+
+def utc_now() -> str:
+    """Current time, ISO 8601 UTC (the stored timestamp format)."""
+    return datetime.now(UTC).isoformat()
+
+
+def text(value: bytes | str | None) -> str | None:
+    return value.decode() if isinstance(value, bytes) else value
+
+
+@dataclass
+class JobRecord:
+    """An estimate job. ``attempts`` counts the starts by a worker; ``rq_id`` names the RQ job
+    of the current enqueueing; ``lost`` lists the attempts whose worker died (for operators)."""
+
+    id: str
+    status: str
+    model_id: str
+    created_at: str
+    request: str
+    seq: int
+    max_iterations: int
+    owner: str = "anonymous"
+    attempts: int = 0
+    rq_id: str = ""
+    timeout_s: int = 0
+    started_at: str | None = None
+    finished_at: str | None = None
+    progress: dict[str, Any] | None = None
+    result: str | None = None
+    error: dict[str, str] | None = None
+    artifacts: list[str] = field(default_factory=list)
+    worker: str | None = None
+    cancel_requested: bool = False
+    fingerprint: str = ""
+    lost: list[dict[str, Any]] = field(default_factory=list)
+
+    @classmethod
+    def from_hash(cls, raw: dict[bytes, bytes]) -> JobRecord:
+        h = {k.decode(): v.decode() for k, v in raw.items()}
+        return cls(
+            id=h["id"],
+            status=h["status"],
+            model_id=h["model_id"],
+            created_at=h["created_at"],
+            request=h["request"],
+            seq=int(h["seq"]),
+            max_iterations=int(h["max_iterations"]),
+            owner=h.get("owner") or "anonymous",
+            attempts=int(h.get("attempts") or 0),
+            rq_id=h.get("rq_id", ""),
+            timeout_s=int(h.get("timeout_s") or 0),
+            started_at=h.get("started_at") or None,
+            finished_at=h.get("finished_at") or None,
+            progress=json.loads(h["progress"]) if h.get("progress") else None,
+            result=h.get("result") or None,
+            error=json.loads(h["error"]) if h.get("error") else None,
+            artifacts=json.loads(h.get("artifacts") or "[]"),
+            worker=h.get("worker") or None,
+            cancel_requested=h.get("cancel_requested") == "1",
+            fingerprint=h.get("fingerprint", ""),
+            lost=json.loads(h.get("lost") or "[]"),
+        )
+
+    @property
+    def terminal(self) -> bool:
+        return self.status in TERMINAL_STATUSES
+
+    def progress_model(self) -> Progress:
+        if self.progress:
+            return Progress.model_validate(self.progress)
+        return Progress(max_iterations=self.max_iterations)
