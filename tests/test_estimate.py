@@ -1,0 +1,239 @@
+"""Full estimates on small renders (worker/estimator.py through worker/engine.py).
+
+References come from worker.synth: rendered with another renderer setup (path tracing, Gaussian
+filter, gamma 2.2, exposure change, sun 3° off, noise, 8 bits) at a known pose; the initial guess
+is 3° and 3 % of the range away. One estimate per method is shared by the tests that read it.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+from conftest import shared_model
+
+from schemas.camera import Camera
+from schemas.estimate import EstimateRequest, EstimateResult, IterationRecord
+from schemas.options import EstimateOptions
+from schemas.pose import Pose
+from worker.artifacts import ARTIFACT_NAMES
+from worker.exceptions import (
+    EmptyRenderError,
+    EstimationCancelled,
+    ImageSizeMismatchError,
+    TooFewFeaturesError,
+)
+from worker.images import decode_image, encode_png
+from worker.meshes import LoadedModel, load_model
+from worker.synth import Case, CaseSpec, make_case
+
+pytestmark = pytest.mark.slow
+
+SIZE_PX = 256
+#: The demo satellite spans 16 units of solar array around a 2-unit bus: frame the array
+#: edge to edge so that the bus is resolved.
+DEMO_SPEC = CaseSpec(offset_deg=3.0, offset_frac=0.03, fill=1.0)
+#: Accuracy required of the default method (issue 2).
+MAX_ROTATION_DEG = 0.3
+MAX_TRANSLATION_PCT = 0.5
+
+
+def _camera(size: int) -> Camera:
+    return Camera(width=size, height=size, fx=1.17 * size, fy=1.17 * size,
+                  cx=size / 2 - 0.5, cy=size / 2 - 0.5)  # fmt: skip
+
+
+def _with_options(case: Case, **options: object) -> EstimateRequest:
+    return case.request.model_copy(update={"options": EstimateOptions(**options)})
+
+
+def _run(path: Path, case: Case, request: EstimateRequest | None = None, **kw: object):  # noqa: ANN202
+    from worker.engine import run_estimate
+
+    return run_estimate(path, encode_png(case.reference), request or case.request, **kw)
+
+
+@pytest.fixture(scope="module")
+def demo_path(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    from worker.demosat import demo_satellite_path
+
+    return demo_satellite_path(tmp_path_factory.mktemp("demo"))
+
+
+@pytest.fixture(scope="module")
+def demo_model(demo_path: Path) -> LoadedModel:
+    return load_model(demo_path)
+
+
+@pytest.fixture(scope="module")
+def demo_case(demo_model: LoadedModel, variant: str) -> Case:
+    return make_case(demo_model, _camera(SIZE_PX), DEMO_SPEC, seed=0)
+
+
+@pytest.fixture(scope="module")
+def default_run(demo_path: Path, demo_case: Case) -> tuple[EstimateResult, dict[str, bytes]]:
+    return _run(demo_path, demo_case)
+
+
+# -- the default method -------------------------------------------------------------------
+def test_default_estimate_is_accurate(default_run: tuple[EstimateResult, dict]) -> None:
+    result, _ = default_run
+    assert result.initial_errors is not None and result.errors is not None
+    assert result.initial_errors.rotation_deg == pytest.approx(3.0, abs=1e-6)
+    assert result.initial_errors.translation_pct_of_range == pytest.approx(3.0, abs=1e-6)
+    assert result.converged, result.reason
+    assert result.errors.rotation_deg < MAX_ROTATION_DEG
+    assert result.errors.translation_pct_of_range < MAX_TRANSLATION_PCT
+
+
+def test_default_estimate_fills_the_result(
+    default_run: tuple[EstimateResult, dict], demo_case: Case, variant: str
+) -> None:
+    result, _ = default_run
+    assert result.method == "default" and result.variant == variant
+    hist = result.history
+    assert result.iterations == len(hist) >= 2
+    assert [h.iteration for h in hist] == list(range(1, len(hist) + 1))
+    assert hist[0].stage == "coarse" and hist[-1].stage == "refine"  # PnP, then the LM
+    assert all(h.renders >= 0 and h.features >= 0 and h.rotation_error_deg is not None
+               for h in hist)  # fmt: skip
+    assert any(h.stage == "refine" and h.renders > 1 for h in hist)  # Jacobian renders
+    assert result.renders >= sum(h.renders for h in hist) > 0
+    assert result.features >= 6 and result.rms_residual_px > 0
+    assert result.timings_s["render"] > 0
+    # The last accepted iteration's pose is the result.
+    last = [h for h in hist if h.accepted][-1]
+    np.testing.assert_allclose(last.pose.R, result.pose.R, atol=1e-12)
+    cov = result.covariance
+    assert cov is not None
+    C = np.array(cov.matrix)
+    np.testing.assert_allclose(C, C.T, atol=1e-12 * np.abs(C).max())
+    assert (np.linalg.eigvalsh(C) > 0).all()
+    assert all(0 < s < 1.0 for s in cov.sigma_rotation_deg)  # degrees, plausible
+    assert all(0 < s < 0.05 * np.linalg.norm(demo_case.t_true) for s in cov.sigma_translation)
+
+
+def test_artifacts_are_pngs_of_the_image_size(default_run: tuple[EstimateResult, dict]) -> None:
+    result, artifacts = default_run
+    assert set(artifacts) == set(ARTIFACT_NAMES) == set(result.artifacts)
+    for name, png in artifacts.items():
+        assert png.startswith(b"\x89PNG\r\n\x1a\n"), name
+        img = decode_image(png)
+        if name == "convergence":
+            assert img.ndim == 3 and min(img.shape[:2]) >= 200
+        else:
+            assert img.shape[:2] == (SIZE_PX, SIZE_PX), name
+        assert img.std() > 0.01, f"{name} is blank"
+
+
+# -- the other methods --------------------------------------------------------------------
+def test_pnp_method(demo_path: Path, demo_case: Case) -> None:
+    result, _ = _run(demo_path, demo_case, _with_options(demo_case, method="pnp"))
+    assert result.method == "pnp"
+    assert {h.stage for h in result.history} == {"coarse"}
+    assert all(h.lambda_ == 0.0 for h in result.history)
+    assert result.renders <= result.iterations + 1  # one render per PnP step (+ the final)
+    assert result.errors.rotation_deg < 2.0
+    assert result.errors.translation_pct_of_range < 2.0
+
+
+@pytest.mark.xfail(
+    strict=True,
+    raises=TooFewFeaturesError,
+    reason="the paper's configuration, read literally, fails on this small target: of its 4 "
+    "matched features (the most trackable of the matches), one is lost in some of the 24 "
+    "perturbed renders even after 3 shrinking resamplings, and features lost in any view are "
+    "dropped (jacobian='common'); the default method's per-feature rows avoid exactly this",
+)
+def test_paper_method(demo_path: Path, demo_case: Case) -> None:
+    """The paper read literally: 4 matched features, 24 full-size perturbation renders per
+    iteration, no PnP. Three iterations (~90 renders) keep the test affordable."""
+    request = _with_options(demo_case, method="paper", max_iterations=3)
+    result, _ = _run(demo_path, demo_case, request, with_artifacts=False)
+    assert result.method == "paper"
+    assert {h.stage for h in result.history} == {"refine"}
+    assert result.iterations == 3
+    assert result.renders > 3 * 24  # the Jacobian is learned afresh at every pose
+    assert all(h.features <= 4 for h in result.history)
+    assert result.errors.rotation_deg < 2.0
+    assert result.errors.translation_pct_of_range < 2.0
+
+
+def test_paper_method_does_not_walk_away(demo_path: Path, demo_model: LoadedModel) -> None:
+    """Every accepted step is judged on at least min_features features (a 6-DoF step checked
+    on fewer is unconstrained), so the estimate never ends farther from the truth than it
+    started (it used to jump from 2.2° to 18° on a step judged on 1 of 4 features)."""
+    case = make_case(demo_model, _camera(SIZE_PX), DEMO_SPEC, seed=2)
+    request = _with_options(case, method="paper", max_iterations=3)
+    result, _ = _run(demo_path, case, request, with_artifacts=False)
+    assert all(h.features >= 4 for h in result.history if h.accepted)
+    assert result.errors.rotation_deg <= result.initial_errors.rotation_deg + 1e-9
+
+
+# -- callbacks and errors -----------------------------------------------------------------
+def test_progress_callback_and_cancellation(demo_path: Path, demo_case: Case) -> None:
+    request = _with_options(demo_case, method="pnp")
+    seen: list[tuple[IterationRecord, int]] = []
+    result, _ = _run(demo_path, demo_case, request, with_artifacts=False,
+                     on_iteration=lambda rec, n: seen.append((rec, n)))  # fmt: skip
+    assert [rec for rec, _ in seen] == result.history
+    assert {n for _, n in seen} == {request.options.max_iterations}
+
+    calls: list[int] = []
+
+    def cancel_after_first_iteration() -> bool:
+        calls.append(1)
+        return len(seen_again) >= 1
+
+    seen_again: list[IterationRecord] = []
+    with pytest.raises(EstimationCancelled):
+        _run(demo_path, demo_case, request, with_artifacts=False,
+             on_iteration=lambda rec, n: seen_again.append(rec),
+             should_cancel=cancel_after_first_iteration)  # fmt: skip
+    # Checked before each render: the estimate stops within an iteration of the request.
+    assert calls and 1 <= len(seen_again) <= 2 < len(seen)
+
+
+def test_same_request_gives_the_same_result(demo_path: Path, demo_case: Case) -> None:
+    """Seeded throughout: a repeated request (warm renderer cache) reproduces the estimate."""
+    request = _with_options(demo_case, method="pnp", seed=7)
+    first, _ = _run(demo_path, demo_case, request, with_artifacts=False)
+    again, _ = _run(demo_path, demo_case, request, with_artifacts=False)
+    assert again.pose == first.pose
+    assert [h.cost for h in again.history] == [h.cost for h in first.history]
+
+
+def test_target_out_of_view_is_an_empty_render(demo_model: LoadedModel, demo_case: Case) -> None:
+    from worker.estimator import estimate
+
+    t = demo_case.request.initial_pose.t
+    # Far to the side; far away (the target then covers much less than a pixel).
+    for t_bad in ([t[0] + 50 * t[2], t[1], t[2]], [t[0], t[1], 1e5 * t[2]]):
+        pose = Pose(t=t_bad, quaternion=demo_case.request.initial_pose.quaternion)
+        request = demo_case.request.model_copy(update={"initial_pose": pose})
+        with pytest.raises(EmptyRenderError, match="not visible"):
+            estimate(demo_model, demo_case.reference / 255.0, request)
+
+
+def test_image_of_the_wrong_size(demo_model: LoadedModel, demo_case: Case) -> None:
+    from worker.estimator import estimate
+
+    small = np.zeros((SIZE_PX, SIZE_PX - 1, 3), np.float32)
+    with pytest.raises(ImageSizeMismatchError, match=f"{SIZE_PX - 1}×{SIZE_PX} px"):
+        estimate(demo_model, small, demo_case.request)
+
+
+# -- the public models --------------------------------------------------------------------
+SHARED_SIZE_PX = 384
+
+
+@pytest.mark.shared
+@pytest.mark.parametrize("name", ["phobos", "aura", "iss"])
+def test_estimate_on_a_shared_model(name: str, variant: str) -> None:
+    path = shared_model(name)
+    case = make_case(load_model(path), _camera(SHARED_SIZE_PX), CaseSpec(3.0, 0.03), seed=0)
+    result, _ = _run(path, case, with_artifacts=False)
+    assert result.converged, result.reason
+    assert result.errors.rotation_deg < MAX_ROTATION_DEG
+    assert result.errors.translation_pct_of_range < MAX_TRANSLATION_PCT

