@@ -57,8 +57,15 @@ def test_glb_is_byte_identical_across_processes(glb: pathlib.Path) -> None:
         "print(hashlib.sha256(data).hexdigest())"
     )
     env = {**os.environ, "PYTHONHASHSEED": "12345"}
-    out = subprocess.run([sys.executable, "-c", code], cwd=REPO, env=env, capture_output=True,
-                         text=True, check=True, timeout=60)
+    out = subprocess.run(
+        [sys.executable, "-c", code],
+        cwd=REPO,
+        env=env,
+        capture_output=True,
+        text=True,
+        check=True,
+        timeout=60,
+    )
     assert out.stdout.strip() == _sha256(glb)
 
 
@@ -108,8 +115,9 @@ def test_bus_is_flat_shaded_and_centred(scene: trimesh.Scene) -> None:
     assert len(bus.vertices) == 24  # unshared vertices per face
     np.testing.assert_allclose(bus.vertex_normals[bus.faces[:, 0]], bus.face_normals, atol=1e-6)
     T, _ = scene.graph["bus"]
-    np.testing.assert_allclose(trimesh.transform_points(bus.bounds, T),
-                               [[-1, -1, -1.5], [1, 1, 1.5]], atol=1e-6)
+    np.testing.assert_allclose(
+        trimesh.transform_points(bus.bounds, T), [[-1, -1, -1.5], [1, 1, 1.5]], atol=1e-6
+    )
 
 
 def test_bounding_box(scene: trimesh.Scene) -> None:

