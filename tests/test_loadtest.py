@@ -20,6 +20,9 @@ import pytest
 from conftest import REPO, free_port
 
 from service import loadtest
+from service.loadtest.config import QUICK, LoadTestError, check_loopback, make_config
+from service.loadtest.poses import PERTURB_ROT_DEG, PERTURB_TRANS_FRAC, perturbed_pose
+from service.loadtest.report import histogram_stats, parse_histograms, percentile, stats
 
 #: How long `proxpose serve` may take to have both workers registered, s.
 READY_TIMEOUT_S = 120.0
@@ -38,8 +41,8 @@ def parse(*argv: str) -> argparse.Namespace:
     "url", ["http://10.0.0.1:8000", "http://example.com", "https://8.8.8.8/", "ftp://127.0.0.1"]
 )
 def test_only_loopback_urls_are_accepted(url: str) -> None:
-    with pytest.raises(loadtest.LoadTestError):
-        loadtest.check_loopback(url)
+    with pytest.raises(LoadTestError):
+        check_loopback(url)
 
 
 @pytest.mark.parametrize(
@@ -47,7 +50,7 @@ def test_only_loopback_urls_are_accepted(url: str) -> None:
     ["http://127.0.0.1:8000/", "http://localhost:1234", "http://[::1]:80", "http://127.9.9.9"],
 )
 def test_loopback_urls_pass(url: str) -> None:
-    assert loadtest.check_loopback(url) == url.rstrip("/")
+    assert check_loopback(url) == url.rstrip("/")
 
 
 def test_cli_refuses_a_remote_url_with_a_clear_error() -> None:
@@ -63,22 +66,22 @@ def test_cli_refuses_a_remote_url_with_a_clear_error() -> None:
 
 
 def test_quick_defaults_and_bounds() -> None:
-    quick = loadtest.make_config(parse("--quick"))
-    assert (quick.clients, quick.jobs, quick.size) == (4, 8, loadtest.QUICK["size"])
-    full = loadtest.make_config(parse())
+    quick = make_config(parse("--quick"))
+    assert (quick.clients, quick.jobs, quick.size) == (4, 8, QUICK["size"])
+    full = make_config(parse())
     assert (full.clients, full.jobs) == (50, 200)
-    assert loadtest.make_config(parse("--quick", "--jobs", "3")).jobs == 3  # explicit wins
+    assert make_config(parse("--quick", "--jobs", "3")).jobs == 3  # explicit wins
     for bad in (["--clients", "0"], ["--jobs", "100000"], ["--timeout-s", "99999"]):
-        with pytest.raises(loadtest.LoadTestError):
-            loadtest.make_config(parse(*bad))
+        with pytest.raises(LoadTestError):
+            make_config(parse(*bad))
 
 
 def test_percentiles_interpolate_like_numpy() -> None:
     values = [float(x) for x in range(1, 101)]
-    assert loadtest.percentile(values, 50) == pytest.approx(50.5)
-    assert loadtest.percentile(values, 99) == pytest.approx(99.01)
-    assert loadtest.percentile([3.0], 95) == 3.0
-    assert loadtest.stats([])["p99"] is None
+    assert percentile(values, 50) == pytest.approx(50.5)
+    assert percentile(values, 99) == pytest.approx(99.01)
+    assert percentile([3.0], 95) == 3.0
+    assert stats([])["p99"] is None
 
 
 def test_server_latency_from_the_metrics_histogram() -> None:
@@ -90,27 +93,27 @@ def test_server_latency_from_the_metrics_histogram() -> None:
             for e, c in zip(edges, counts, strict=True)
         )
 
-    before = loadtest.parse_histograms(scrape([1, 1, 1, 1, 1, 1]))
-    after = loadtest.parse_histograms(scrape([1, 41, 81, 91, 100, 101]))
+    before = parse_histograms(scrape([1, 1, 1, 1, 1, 1]))
+    after = parse_histograms(scrape([1, 41, 81, 91, 100, 101]))
     key = ("GET", "/v1/estimates/{job_id}")
-    figures = loadtest.histogram_stats(before[key], after[key])
+    figures = histogram_stats(before[key], after[key])
     assert figures["n"] == 100 and figures["under_50ms_pct"] == 90.0
     assert figures["p50"] == pytest.approx(10.0 + 15.0 * 10 / 40, abs=0.1)  # within (10, 25]
     assert figures["p99"] == 100.0  # the 99th of 100 is the last in (50, 100] ms
-    assert loadtest.histogram_stats({}, {})["p50"] is None
+    assert histogram_stats({}, {})["p50"] is None
 
 
 def test_initial_guesses_are_near_the_truth() -> None:
     truth = {"t": [0.3, -0.2, 14.0], "quaternion": [0.5735764, 0.6802687, 0.4081612, 0.2040806]}
-    guesses = [loadtest.perturbed_pose(truth, seed) for seed in range(20)]
-    assert guesses[3] == loadtest.perturbed_pose(truth, 3)  # deterministic
+    guesses = [perturbed_pose(truth, seed) for seed in range(20)]
+    assert guesses[3] == perturbed_pose(truth, 3)  # deterministic
     assert len({json.dumps(g) for g in guesses}) == 20
     for guess in guesses:
         dot = abs(sum(a * b for a, b in zip(guess["quaternion"], truth["quaternion"], strict=True)))
         angle = math.degrees(2.0 * math.acos(min(1.0, dot)))
-        assert angle == pytest.approx(loadtest.PERTURB_ROT_DEG, abs=1e-3)
+        assert angle == pytest.approx(PERTURB_ROT_DEG, abs=1e-3)
         shift = math.dist(guess["t"], truth["t"])
-        assert shift == pytest.approx(loadtest.PERTURB_TRANS_FRAC * math.hypot(*truth["t"]), 1e-3)
+        assert shift == pytest.approx(PERTURB_TRANS_FRAC * math.hypot(*truth["t"]), 1e-3)
 
 
 # ----------------------------------------------------------------------------- against a service

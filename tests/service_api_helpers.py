@@ -1,0 +1,107 @@
+"""Shared by the ``test_service_api_*`` modules (the API on a real Redis, without workers):
+their Redis database, the ``r`` and ``client`` fixtures, a valid estimate request and its image,
+and the checks of a rejected request."""
+
+from __future__ import annotations
+
+import io
+import json
+from collections.abc import Iterator
+from typing import Any
+
+import pytest
+import redis
+from fastapi.testclient import TestClient
+from PIL import Image
+from rq import Queue
+
+from schemas.settings import get_settings
+from service.main import create_app
+from service.store import Keys
+
+#: Redis database of these modules (the session's Redis is shared with other modules).
+DB = 1
+KEYS = Keys("proxpose")
+SIDE_PX = 64
+
+
+# ----------------------------------------------------------------------------- fixtures
+# Each module imports them as redis_db and api_client (a test argument named like an import
+# would shadow it); its tests ask for r and client.
+@pytest.fixture(name="r")
+def redis_db(
+    redis_server: Any, tmp_path: Any, monkeypatch: pytest.MonkeyPatch
+) -> Iterator[redis.Redis]:
+    """Settings pointing at the ``DB`` Redis database, emptied before and after."""
+    url = redis_server.url(DB)
+    monkeypatch.setenv("PROXPOSE_REDIS_URL", url)
+    monkeypatch.setenv("PROXPOSE_DATA_DIR", str(tmp_path))
+    get_settings.cache_clear()
+    client = redis.Redis.from_url(url)
+    client.flushdb()
+    yield client
+    client.flushdb()
+    get_settings.cache_clear()
+
+
+@pytest.fixture(name="client")
+def api_client(r: redis.Redis) -> Iterator[TestClient]:
+    with TestClient(create_app()) as c:
+        yield c
+
+
+def png(width: int = SIDE_PX, height: int = SIDE_PX) -> bytes:
+    img = Image.new("RGB", (width, height))
+    img.paste((200, 180, 40), (width // 4, height // 4, width // 2, height // 2))
+    buf = io.BytesIO()
+    img.save(buf, format="PNG")
+    return buf.getvalue()
+
+
+def base_request(**changes: Any) -> dict[str, Any]:
+    request: dict[str, Any] = {
+        "model_id": "demo-sat",
+        "camera": {
+            "width": SIDE_PX,
+            "height": SIDE_PX,
+            "fx": 70.0,
+            "fy": 70.0,
+            "cx": 31.5,
+            "cy": 31.5,
+        },
+        "initial_pose": {"t": [0.0, 0.0, 14.0], "quaternion": [1.0, 0.0, 0.0, 0.0]},
+    }
+    request.update(changes)
+    return request
+
+
+def submit(
+    client: TestClient,
+    request: dict[str, Any] | str | None = None,
+    image: bytes | None = None,
+    headers: dict[str, str] | None = None,
+) -> Any:
+    request = base_request() if request is None else request
+    files = {"image": ("ref.png", png() if image is None else image, "image/png")}
+    text = request if isinstance(request, str) else json.dumps(request)
+    return client.post("/v1/estimates", files=files, data={"request": text}, headers=headers)
+
+
+def queued(r: redis.Redis) -> int:
+    """Jobs waiting in either queue, plus job records: what a rejected request must not add."""
+    waiting = sum(
+        Queue(name, connection=r).count for name in (KEYS.estimate_queue, KEYS.render_queue)
+    )
+    return waiting + int(r.zcard(KEYS.jobs_index))  # type: ignore[arg-type]
+
+
+def assert_field_error(response: Any, status: int, loc: tuple[str | int, ...]) -> dict[str, Any]:
+    assert response.status_code == status, response.text
+    assert "Traceback" not in response.text
+    detail = response.json()["detail"]
+    assert isinstance(detail, list), detail
+    locs = [tuple(e["loc"]) for e in detail]
+    hit = [e for e in detail if tuple(e["loc"][: len(loc)]) == loc]
+    assert hit, f"no error at {loc}; got {locs}"
+    assert all(e["msg"] for e in detail)
+    return hit[0]  # type: ignore[no-any-return]
