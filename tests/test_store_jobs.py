@@ -1,0 +1,98 @@
+"""JobStore.create under concurrency, on a real Redis: the per-key cap on active jobs holds
+when many submissions race, and none of them has to retry."""
+
+from __future__ import annotations
+
+import secrets
+import threading
+from collections.abc import Iterator
+
+import pytest
+import redis
+from conftest import RedisServer
+
+from service.store import JobStore, Keys
+from service.store.jobs import ActiveJobsLimitError
+
+DB = 9
+THREADS = 24
+
+
+@pytest.fixture(name="store")
+def job_store(redis_server: RedisServer) -> Iterator[JobStore]:
+    r = redis.Redis.from_url(redis_server.url(DB))
+    r.flushdb()
+    yield JobStore(r, Keys("storetest"), retention_s=3600)
+    r.flushdb()
+    r.close()
+
+
+def _race(store: JobStore, cap: int) -> tuple[list[str], int]:
+    """THREADS submissions released at once; the ids accepted and the number refused."""
+    accepted: list[str] = []
+    refused = [0]
+    lock = threading.Lock()
+    start = threading.Barrier(THREADS)
+
+    def submit() -> None:
+        job_id = secrets.token_hex(16)
+        start.wait()
+        try:
+            store.create(
+                job_id, "demo-sat", "{}", 3, b"png", "fp", owner="alice", timeout_s=60,
+                max_active=cap,
+            )  # fmt: skip
+        except ActiveJobsLimitError:
+            with lock:
+                refused[0] += 1
+            return
+        with lock:
+            accepted.append(job_id)
+
+    threads = [threading.Thread(target=submit) for _ in range(THREADS)]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join()
+    return accepted, refused[0]
+
+
+def test_racing_submissions_never_overshoot_the_cap(store: JobStore) -> None:
+    accepted, refused = _race(store, cap=5)
+    assert len(accepted) == 5 and refused == THREADS - 5
+    r = store.r
+    assert r.scard(store.keys.owner_active("alice")) == 5
+    assert r.zcard(store.keys.jobs_index) == 5  # refused ones left nothing behind
+    seqs = sorted(int(r.hget(store.keys.job(j), "seq")) for j in accepted)  # type: ignore[arg-type]
+    assert len(set(seqs)) == 5
+
+
+def test_uncapped_racing_submissions_all_land_with_distinct_sequence_numbers(
+    store: JobStore,
+) -> None:
+    accepted, refused = _race(store, cap=0)
+    assert refused == 0 and len(accepted) == THREADS
+    for job_id in accepted:
+        record = store.get(job_id)
+        assert record is not None and record.status == "queued"
+    seqs = {store.get(j).seq for j in accepted}  # type: ignore[union-attr]
+    assert len(seqs) == THREADS
+    queued = store.queues.estimates.get_job_ids()
+    assert len(queued) == THREADS  # every job is on the RQ queue
+
+
+def test_a_failed_write_gives_the_reserved_place_back(
+    store: JobStore, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    def broken(*args: object, **kwargs: object) -> None:
+        raise redis.ConnectionError("lost the connection")
+
+    monkeypatch.setattr(store.queues, "enqueue_estimate", broken)
+    with pytest.raises(redis.ConnectionError):
+        store.create("a" * 32, "demo-sat", "{}", 3, b"png", "fp", owner="alice", timeout_s=60,
+                     max_active=1)  # fmt: skip
+    assert store.r.scard(store.keys.owner_active("alice")) == 0
+    monkeypatch.undo()
+    store.create("b" * 32, "demo-sat", "{}", 3, b"png", "fp", owner="alice", timeout_s=60,
+                 max_active=1)  # fmt: skip
+    assert store.get("a" * 32) is None and store.get("b" * 32) is not None
