@@ -157,7 +157,7 @@ async def _answer(
     await send({"type": "http.response.body", "body": body})
 
 
-def get_principal(request: Request) -> Principal:
+async def get_principal(request: Request) -> Principal:
     """The caller, as AuthMiddleware identified it (401 if it did not)."""
     principal = request.scope.get("state", {}).get("principal")
     if not isinstance(principal, Principal):

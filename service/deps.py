@@ -3,6 +3,9 @@
 The Redis clients live on ``app.state`` (made in the lifespan from the settings of that moment);
 stores are cheap views over them, built per request for the caller (``PrincipalDep``): a job
 or model store sees only the caller's records unless the caller is an admin.
+
+Every dependency is ``async def`` although none awaits: FastAPI runs a sync dependency in the
+thread pool, and those hand-offs (several per request) cost more than the work itself.
 """
 
 from __future__ import annotations
@@ -17,14 +20,19 @@ from schemas.settings import Settings, get_settings
 from service.auth import PrincipalDep
 from service.store import JobStore, Keys, ModelStore, Queues
 
-SettingsDep = Annotated[Settings, Depends(get_settings)]
+
+async def current_settings() -> Settings:
+    return get_settings()
 
 
-def get_redis(request: Request) -> redis.Redis:
+SettingsDep = Annotated[Settings, Depends(current_settings)]
+
+
+async def get_redis(request: Request) -> redis.Redis:
     return request.app.state.redis  # type: ignore[no-any-return]
 
 
-def get_async_redis(request: Request) -> redis.asyncio.Redis:
+async def get_async_redis(request: Request) -> redis.asyncio.Redis:
     return request.app.state.aredis  # type: ignore[no-any-return]
 
 
@@ -32,24 +40,24 @@ RedisDep = Annotated[redis.Redis, Depends(get_redis)]
 AsyncRedisDep = Annotated[redis.asyncio.Redis, Depends(get_async_redis)]
 
 
-def get_keys(settings: SettingsDep) -> Keys:
+async def get_keys(settings: SettingsDep) -> Keys:
     return Keys(settings.redis_prefix)
 
 
 KeysDep = Annotated[Keys, Depends(get_keys)]
 
 
-def get_job_store(
+async def get_job_store(
     r: RedisDep, keys: KeysDep, settings: SettingsDep, principal: PrincipalDep
 ) -> JobStore:
     return JobStore(r, keys, settings.retention_s, viewer=principal)
 
 
-def get_model_store(r: RedisDep, keys: KeysDep, principal: PrincipalDep) -> ModelStore:
+async def get_model_store(r: RedisDep, keys: KeysDep, principal: PrincipalDep) -> ModelStore:
     return ModelStore(r, keys, viewer=principal)
 
 
-def get_queues(r: RedisDep, keys: KeysDep) -> Queues:
+async def get_queues(r: RedisDep, keys: KeysDep) -> Queues:
     return Queues(r, keys)
 
 
