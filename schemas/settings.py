@@ -117,6 +117,14 @@ class Settings(BaseSettings):
     workers: int = Field(
         default=1, ge=0, le=64, description="Workers `proxpose serve` starts beside the API."
     )
+    worker_nice: int = Field(
+        default=10,
+        ge=0,
+        le=19,
+        description="Scheduling niceness a worker process takes on start (0 = unchanged): "
+        "estimates are batch work, so on a machine shared with the API the API's answers come "
+        "first.",
+    )
     max_image_bytes: int = Field(
         default=64 * _MIB, ge=1024, description="Largest reference image upload, bytes."
     )

@@ -69,6 +69,8 @@ def run(args: argparse.Namespace) -> int:
     if r is None:
         return 1
     keys = Keys(settings.redis_prefix)
+    if settings.worker_nice > 0:
+        os.nice(settings.worker_nice)  # before the renderer's threads start: they inherit it
     variant = init_renderer_backend()
     demo = register_demo_model(r, keys, settings.data_dir)
     log.info("renderer variant %s; model '%s' registered", variant, demo.id)
