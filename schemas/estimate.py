@@ -51,7 +51,9 @@ class IterationRecord(BaseModel):
 
 
 class Covariance(BaseModel):
-    """Pose covariance from the final Jacobian and residuals, σ² (JᵀWJ)⁻¹.
+    """Pose covariance from the final Jacobian and residuals: the cluster-robust (sandwich)
+    estimate over image cells, or σ² (JᵀWJ)⁻¹ when that is larger. A lower bound: it does not
+    see a mismatch common to the whole image (lighting, reflectance).
 
     The matrix is over p = [δq, δt] (Gibbs increment in the model frame, translation in the
     camera frame); the 1-σ figures convert δq to degrees (an angle is 2|δq| radians).

@@ -289,3 +289,39 @@ def test_covariance_matches_the_analytic_one_on_a_linear_gaussian_problem() -> N
     np.testing.assert_allclose(L_inv @ empirical @ L_inv.T, np.eye(6), atol=0.1)
     np.testing.assert_allclose(L_inv @ np.mean(reported, axis=0) @ L_inv.T, np.eye(6), atol=0.03)
     assert np.mean(sigmas) == pytest.approx(sigma, rel=0.02)
+
+
+def test_covariance_counts_errors_shared_by_nearby_features_once() -> None:
+    """Features in one image cell share an error (one edge, one shading difference): the
+    independent-error covariance then understates the spread of δp; the cluster-robust one,
+    given the features' positions, matches it."""
+    rng = np.random.default_rng(5)
+    cell = 48.0
+    centres = rng.uniform(0, 480, size=(40, 2))  # 40 regions, 8 features each, within a cell
+    x = np.repeat(np.floor(centres / cell) * cell + 10.0, 8, axis=0) + rng.uniform(0, 20, (320, 2))
+    k = len(x)
+    _, region = np.unique(np.floor(x / cell), axis=0, return_inverse=True)
+    region = region.ravel()
+    # The image Jacobian of points (interaction matrix, f = 500 px): smooth across the image,
+    # so nearby features respond alike and an error they share does not average out.
+    f = 500.0
+    u, v = ((x - 240.0) / f).T
+    inv_z = 1.0 / (10.0 + 2.0 * np.sin(u * 3.0))
+    zero = np.zeros(k)
+    Ju = np.stack([-inv_z, zero, u * inv_z, u * v, -(1 + u**2), v], axis=1)
+    Jv = np.stack([zero, -inv_z, v * inv_z, 1 + v**2, -u * v, -u], axis=1)
+    J = f * np.stack([Ju, Jv], axis=1).reshape(2 * k, 6)
+    w = np.ones(k)
+    fits, plain, robust = [], [], []
+    for _ in range(600):
+        shared = rng.normal(scale=0.3, size=(region.max() + 1, 2))[region]  # per region
+        r = (shared + rng.normal(scale=0.05, size=(k, 2))).ravel()
+        dp = lm_step(J, r, 0.0, w)
+        fits.append(dp)
+        plain.append(covariance(J, r - J @ dp, w)[0])
+        robust.append(covariance(J, r - J @ dp, w, x, cell_px=cell)[0])
+    empirical = np.trace(np.cov(np.array(fits).T) @ J.T @ J)
+    plain_ratio = np.trace(np.mean(plain, axis=0) @ J.T @ J) / empirical
+    robust_ratio = np.trace(np.mean(robust, axis=0) @ J.T @ J) / empirical
+    assert plain_ratio < 0.2  # measured 0.07: counts every feature as independent
+    assert 0.6 < robust_ratio < 1.3  # measured 0.81 (the sandwich runs a little low)

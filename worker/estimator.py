@@ -190,10 +190,10 @@ def _errors(
 def _covariance(session: Session) -> Covariance | None:
     if session.fit is None:
         return None
-    J, r, w = session.fit
+    J, r, w, x = session.fit
     if len(r) < 8:
         return None
-    C, sigma = covariance(J, r, w)
+    C, sigma = covariance(J, r, w, x)
     # A rotation by angle a has |q| = tan(a/2) ≈ a/2, so σ_angle = 2 σ_q.
     sig_q = np.sqrt(np.clip(np.diag(C)[:3], 0.0, None))
     sig_t = np.sqrt(np.clip(np.diag(C)[3:], 0.0, None))
@@ -224,7 +224,7 @@ def _result(
     features = len(fit[2]) if fit else (session.history[-1].features if session.history else 0)
     rms = float(np.sqrt(session.history[-1].cost)) if session.history else 0.0
     if fit is not None and len(fit[1]):
-        J, r, w = fit
+        _, r, w, _ = fit
         rms = float(np.sqrt(np.sum(np.repeat(w, 2) * r**2) / max(np.sum(w), 1e-12) / 2))
     return EstimateResult(
         pose=pose_to_schema(session.R, session.t),

@@ -20,6 +20,12 @@ RANSAC_SET_SIZE = 6
 MIN_SCALE_PX = 0.05
 
 
+#: Image cell (px) within which feature errors are taken as one, for the covariance.
+CLUSTER_CELL_PX = 48.0
+#: Fewest cells for the cluster-robust covariance (below: the independent-error one).
+MIN_CLUSTERS = 10
+
+
 def expand(w: Array) -> Array:
     """Per-feature weights (k,) to per-row weights (2k,)."""
     return np.repeat(w, 2)
@@ -110,10 +116,35 @@ def ransac_increment(
     return best
 
 
-def covariance(J: Array, r: Array, w: Array) -> tuple[Array, float]:
-    """Pose covariance σ² (JᵀWJ)⁻¹ (6, 6) and the residual σ (px) at the optimum."""
+def covariance(
+    J: Array, r: Array, w: Array, x: Array | None = None, cell_px: float = CLUSTER_CELL_PX
+) -> tuple[Array, float]:
+    """Pose covariance (6, 6) and the residual σ (px) at the optimum.
+
+    Without positions: σ² (JᵀWJ)⁻¹, which takes every feature's error as independent. With the
+    features' image positions ``x`` (k, 2): the cluster-robust (sandwich) estimate
+    A⁻¹ (Σ_c g_c g_cᵀ) A⁻¹ · G/(G−1), A = JᵀWJ, g_c = Σ_{i∈c} J_iᵀ W_i r_i over the features
+    of each ``cell_px`` image cell. Errors shared by nearby features (points along one edge, a
+    shading difference over one panel) then count once per cell, not once per feature; the
+    larger of the two is returned, per parameter pair, through the larger trace.
+    """
     Wr = expand(w)
     A = (J.T * Wr) @ J
     dof = max(float(np.sum(Wr)) - 6.0, 1.0)
     sigma2 = float(np.sum(Wr * r**2)) / dof
-    return sigma2 * np.linalg.pinv(A), float(np.sqrt(sigma2))
+    A_inv = np.linalg.pinv(A)
+    C = sigma2 * A_inv
+    if x is None or len(x) < 2:
+        return C, float(np.sqrt(sigma2))
+    cells = np.floor(np.asarray(x) / cell_px).astype(np.int64)
+    _, cluster = np.unique(cells, axis=0, return_inverse=True)
+    G = int(cluster.max()) + 1
+    if G < MIN_CLUSTERS:
+        return C, float(np.sqrt(sigma2))
+    scores = (J * (Wr * r)[:, None]).reshape(len(w), 2, -1).sum(axis=1)  # (k, 6)
+    g = np.zeros((G, J.shape[1]))
+    np.add.at(g, cluster.ravel(), scores)
+    C_cluster = A_inv @ (g.T @ g) @ A_inv * (G / (G - 1.0))
+    if np.trace(C_cluster) > np.trace(C):
+        C = C_cluster
+    return C, float(np.sqrt(sigma2))

@@ -171,7 +171,7 @@ def run_lm_stage(
                     active, J, r, w = active_new, J[_rows(keep)], r[_rows(keep)], w[keep]
                     A, J_px = A[keep], J_px[_rows(keep)]
             dp = lm_step(J, r, lam, w)
-        session.fit = (J, r, w)
+        session.fit = (J, r, w, st.h[active])
         step = step_norm(dp, session.range_)
         cost_model = weighted_cost(r, w)
         predicted_gain = cost_model - weighted_cost(r - J @ dp, w)
@@ -204,7 +204,7 @@ def run_lm_stage(
             session.accept(trial)
             _broyden_update(session, st, active, common, h_t, dp)
             st.h, st.ok = h_t, st.ok & ok_t
-            session.fit = (J[_rows(common)], r_t[_rows(common)], w[common])
+            session.fit = (J[_rows(common)], r_t[_rows(common)], w[common], h_t[active][common])
             session.record(stage, cost_trial, step, lam, True, int(common.sum()))
             lam = max(lam * 0.1, LAMBDA_MIN)
             if handover_step is not None and step < handover_step:

@@ -56,8 +56,9 @@ class Session:
     timings_s: dict[str, float] = field(default_factory=lambda: defaultdict(float))
     views: dict[str, RenderedView] = field(default_factory=dict)  # "first", "second", "final"
     current: RenderedView | None = None
-    #: (J, r, w) of the learned linear model at the current pose, for the covariance.
-    fit: tuple[Array, Array, Array] | None = None
+    #: (J, r, w, x) of the learned linear model at the current pose, for the covariance:
+    #: whitened rows, whitened residuals, weights, and the features' image positions (k, 2).
+    fit: tuple[Array, Array, Array, Array] | None = None
     rng: np.random.Generator = field(default_factory=np.random.default_rng)
     _renders_at_last_record: int = 0
     _ref_u8: NDArray[np.uint8] | None = None
