@@ -17,6 +17,7 @@ import redis
 from schemas.jobs import EstimateCreate, RenderCreate
 from schemas.lighting import Lighting
 from schemas.models import ModelPublic
+from service.quaternions import Quaternion, Vector3, axis_quaternion, multiply, rotate
 from service.store import Keys
 
 #: Horizontal field of view of the suggested camera, degrees.
@@ -36,41 +37,13 @@ PREVIEW_VERSION = 1
 #: How long a rendered preview stays in Redis, s (it is re-rendered on demand afterwards).
 PREVIEW_TTL_S = 30 * 24 * 3600
 
-Quaternion = tuple[float, float, float, float]
-Vector3 = tuple[float, float, float]
-
-
-def _axis_quaternion(axis: Vector3, angle_deg: float) -> Quaternion:
-    """Unit quaternion [w, x, y, z] of the active rotation by ``angle_deg`` about unit ``axis``."""
-    half = math.radians(angle_deg) / 2.0
-    s = math.sin(half)
-    return (math.cos(half), axis[0] * s, axis[1] * s, axis[2] * s)
-
-
-def _multiply(a: Quaternion, b: Quaternion) -> Quaternion:
-    """Hamilton product a ⊗ b: the rotation b, then a."""
-    aw, ax, ay, az = a
-    bw, bx, by, bz = b
-    return (
-        aw * bw - ax * bx - ay * by - az * bz,
-        aw * bx + ax * bw + ay * bz - az * by,
-        aw * by - ax * bz + ay * bw + az * bx,
-        aw * bz + ax * by - ay * bx + az * bw,
-    )
-
-
-def _rotate(q: Quaternion, v: Vector3) -> Vector3:
-    """R(q) v, as q ⊗ [0, v] ⊗ q*."""
-    w, x, y, z = _multiply(_multiply(q, (0.0, *v)), (q[0], -q[1], -q[2], -q[3]))
-    return (x, y, z)
-
 
 def view_quaternion() -> Quaternion:
     """Attitude (model to camera) of the suggested oblique view, [w, x, y, z] with w ≥ 0."""
-    yaw = _axis_quaternion((0.0, 1.0, 0.0), VIEW_YAW_DEG)
-    flip = _axis_quaternion((1.0, 0.0, 0.0), 180.0)
-    tilt = _axis_quaternion((1.0, 0.0, 0.0), VIEW_TILT_DEG)
-    q = _multiply(tilt, _multiply(flip, yaw))
+    yaw = axis_quaternion((0.0, 1.0, 0.0), VIEW_YAW_DEG)
+    flip = axis_quaternion((1.0, 0.0, 0.0), 180.0)
+    tilt = axis_quaternion((1.0, 0.0, 0.0), VIEW_TILT_DEG)
+    q = multiply(tilt, multiply(flip, yaw))
     return q if q[0] >= 0.0 else (-q[0], -q[1], -q[2], -q[3])
 
 
@@ -107,7 +80,7 @@ def suggested_pose(bounds: list[list[float]], camera: dict[str, float]) -> dict[
     f = min(camera["fx"], camera["fy"])
     d = radius * math.sqrt(1.0 + (f / rho_px) ** 2)
     q = view_quaternion()
-    Rc = _rotate(q, centre)
+    Rc = rotate(q, centre)
     t = [-Rc[0], -Rc[1], d - Rc[2]]
     return {"t": [round(c, 6) for c in t], "quaternion": [round(c, 7) for c in q]}
 

@@ -7,22 +7,11 @@ import math
 import random
 from typing import Any
 
+from service.quaternions import axis_quaternion, multiply
+
 #: Initial guesses: rotated this far about a random axis, moved this fraction of the range.
 PERTURB_ROT_DEG = 2.0
 PERTURB_TRANS_FRAC = 0.01
-
-Quaternion = tuple[float, float, float, float]
-
-
-def _qmul(a: Quaternion, b: Quaternion) -> Quaternion:
-    aw, ax, ay, az = a
-    bw, bx, by, bz = b
-    return (
-        aw * bw - ax * bx - ay * by - az * bz,
-        aw * bx + ax * bw + ay * bz - az * by,
-        aw * by - ax * bz + ay * bw + az * bx,
-        aw * bz + ax * by - ay * bx + az * bw,
-    )
 
 
 def _unit(v: list[float]) -> list[float]:
@@ -35,9 +24,8 @@ def perturbed_pose(truth: dict[str, Any], seed: int) -> dict[str, list[float]]:
     ``PERTURB_TRANS_FRAC`` of its range in a random direction (deterministic in ``seed``)."""
     rng = random.Random(seed)
     axis = _unit([rng.gauss(0.0, 1.0) for _ in range(3)])
-    half = math.radians(PERTURB_ROT_DEG) / 2.0
-    delta = (math.cos(half), *(math.sin(half) * a for a in axis))
-    q = _qmul(delta, tuple(truth["quaternion"]))  # type: ignore[arg-type]
+    delta = axis_quaternion((axis[0], axis[1], axis[2]), PERTURB_ROT_DEG)
+    q = multiply(delta, tuple(truth["quaternion"]))  # type: ignore[arg-type]
     norm = math.sqrt(sum(x * x for x in q))
     t = [float(x) for x in truth["t"]]
     shift = PERTURB_TRANS_FRAC * math.sqrt(sum(x * x for x in t))
