@@ -6,7 +6,9 @@ from __future__ import annotations
 import os
 import subprocess
 from collections.abc import Iterator
+from contextlib import contextmanager
 from pathlib import Path
+from typing import Any
 
 import pytest
 
@@ -88,6 +90,39 @@ def redis_server(tmp_path_factory: pytest.TempPathFactory) -> Iterator[RedisServ
     yield RedisServer(port, proc)
     proc.terminate()
     proc.wait(timeout=10)
+
+
+@contextmanager
+def settings_on_redis(
+    redis_server: RedisServer,
+    db: int,
+    data_dir: Path,
+    monkeypatch: pytest.MonkeyPatch,
+    env: dict[str, str] | None = None,
+) -> Iterator[Any]:
+    """Point the settings (``PROXPOSE_*`` variables) at database ``db`` of the session's Redis
+    and at ``data_dir``, with no API keys or CORS origins unless ``env`` sets them; yields a
+    client of that database, emptied before and after."""
+    import redis
+
+    from schemas.settings import get_settings
+
+    url = redis_server.url(db)
+    monkeypatch.setenv("PROXPOSE_REDIS_URL", url)
+    monkeypatch.setenv("PROXPOSE_DATA_DIR", str(data_dir))
+    for name in ("PROXPOSE_API_KEYS", "PROXPOSE_ADMIN_API_KEYS", "PROXPOSE_CORS_ORIGINS"):
+        monkeypatch.delenv(name, raising=False)
+    for name, value in (env or {}).items():
+        monkeypatch.setenv(name, value)
+    get_settings.cache_clear()
+    client = redis.Redis.from_url(url)
+    client.flushdb()
+    try:
+        yield client
+    finally:
+        client.flushdb()
+        client.close()
+        get_settings.cache_clear()
 
 
 # ----------------------------------------------------------------------------- service processes

@@ -11,11 +11,11 @@ from typing import Any
 
 import pytest
 import redis
+from conftest import settings_on_redis
 from fastapi.testclient import TestClient
 from PIL import Image
 from rq import Queue
 
-from schemas.settings import get_settings
 from service.main import create_app
 from service.store import Keys
 
@@ -33,15 +33,8 @@ def redis_db(
     redis_server: Any, tmp_path: Any, monkeypatch: pytest.MonkeyPatch
 ) -> Iterator[redis.Redis]:
     """Settings pointing at the ``DB`` Redis database, emptied before and after."""
-    url = redis_server.url(DB)
-    monkeypatch.setenv("PROXPOSE_REDIS_URL", url)
-    monkeypatch.setenv("PROXPOSE_DATA_DIR", str(tmp_path))
-    get_settings.cache_clear()
-    client = redis.Redis.from_url(url)
-    client.flushdb()
-    yield client
-    client.flushdb()
-    get_settings.cache_clear()
+    with settings_on_redis(redis_server, DB, tmp_path, monkeypatch) as client:
+        yield client
 
 
 @pytest.fixture(name="client")

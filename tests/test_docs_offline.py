@@ -23,7 +23,7 @@ from urllib.parse import urlsplit
 import httpx
 import pytest
 import redis
-from conftest import free_port, start_api
+from conftest import free_port, settings_on_redis, start_api
 from fastapi.testclient import TestClient
 
 from schemas.settings import get_settings
@@ -46,16 +46,8 @@ HTTP_METHODS = ("get", "put", "post", "delete", "options", "head", "patch", "tra
 
 @pytest.fixture
 def r(redis_server: Any, tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> Iterator[redis.Redis]:
-    url = redis_server.url(DB)
-    monkeypatch.setenv("PROXPOSE_REDIS_URL", url)
-    monkeypatch.setenv("PROXPOSE_DATA_DIR", str(tmp_path))
-    monkeypatch.delenv("PROXPOSE_API_KEYS", raising=False)
-    monkeypatch.delenv("PROXPOSE_ADMIN_API_KEYS", raising=False)
-    get_settings.cache_clear()
-    client = redis.Redis.from_url(url)
-    yield client
-    client.flushdb()
-    get_settings.cache_clear()
+    with settings_on_redis(redis_server, DB, tmp_path, monkeypatch) as client:
+        yield client
 
 
 @pytest.fixture

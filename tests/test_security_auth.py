@@ -12,6 +12,7 @@ from typing import Any
 
 import pytest
 import redis
+from conftest import settings_on_redis
 from fastapi.testclient import TestClient
 from PIL import Image
 from rq import Queue
@@ -43,18 +44,12 @@ def bearer(key: str) -> dict[str, str]:
 
 @pytest.fixture
 def r(redis_server: Any, tmp_path: Any, monkeypatch: pytest.MonkeyPatch) -> Iterator[redis.Redis]:
-    url = redis_server.url(DB)
-    monkeypatch.setenv("PROXPOSE_REDIS_URL", url)
-    monkeypatch.setenv("PROXPOSE_DATA_DIR", str(tmp_path))
-    monkeypatch.setenv("PROXPOSE_API_KEYS", f"alice:{ALICE}, bob:{BOB}")
-    monkeypatch.setenv("PROXPOSE_ADMIN_API_KEYS", f"ops:{OPS}")
-    monkeypatch.delenv("PROXPOSE_CORS_ORIGINS", raising=False)
-    get_settings.cache_clear()
-    client = redis.Redis.from_url(url)
-    client.flushdb()
-    yield client
-    client.flushdb()
-    get_settings.cache_clear()
+    keys = {
+        "PROXPOSE_API_KEYS": f"alice:{ALICE}, bob:{BOB}",
+        "PROXPOSE_ADMIN_API_KEYS": f"ops:{OPS}",
+    }
+    with settings_on_redis(redis_server, DB, tmp_path, monkeypatch, keys) as client:
+        yield client
 
 
 @pytest.fixture

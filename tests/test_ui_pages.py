@@ -15,13 +15,13 @@ from typing import Any
 import numpy as np
 import pytest
 import redis
+from conftest import settings_on_redis
 from fastapi.testclient import TestClient
 
 from schemas.estimate import EstimateResult
 from schemas.jobs import EstimateCreate
 from schemas.models import ModelPublic
 from schemas.pose import PoseOut
-from schemas.settings import get_settings
 from service.main import create_app
 from service.pages import FILL_FRACTION, PreviewCache, suggested_request
 from service.resources import estimate_outcome
@@ -44,17 +44,8 @@ BOX_OBJ = (
 
 @pytest.fixture
 def r(redis_server: Any, tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> Iterator[redis.Redis]:
-    url = redis_server.url(DB)
-    monkeypatch.setenv("PROXPOSE_REDIS_URL", url)
-    monkeypatch.setenv("PROXPOSE_DATA_DIR", str(tmp_path))
-    monkeypatch.delenv("PROXPOSE_API_KEYS", raising=False)
-    monkeypatch.delenv("PROXPOSE_ADMIN_API_KEYS", raising=False)
-    get_settings.cache_clear()
-    client = redis.Redis.from_url(url)
-    client.flushdb()
-    yield client
-    client.flushdb()
-    get_settings.cache_clear()
+    with settings_on_redis(redis_server, DB, tmp_path, monkeypatch) as client:
+        yield client
 
 
 @pytest.fixture
