@@ -96,3 +96,9 @@ def test_a_failed_write_gives_the_reserved_place_back(
     store.create("b" * 32, "demo-sat", "{}", 3, b"png", "fp", owner="alice", timeout_s=60,
                  max_active=1)  # fmt: skip
     assert store.get("a" * 32) is None and store.get("b" * 32) is not None
+
+
+def test_a_created_job_reads_back_as_the_record_create_returned(store: JobStore) -> None:
+    record = store.create("c" * 32, "demo-sat", '{"x": 1}', 7, b"png", "fp", owner="bob",
+                          timeout_s=90)  # fmt: skip
+    assert store.get("c" * 32) == record

@@ -124,25 +124,11 @@ class JobStore:
             timeout_s=timeout_s,
             fingerprint=fingerprint,
         )
-        fields = {
-            "id": job_id,
-            "status": "queued",
-            "model_id": model_id,
-            "created_at": record.created_at,
-            "request": request_json,
-            "seq": str(seq),
-            "max_iterations": str(max_iterations),
-            "owner": owner,
-            "attempts": "0",
-            "rq_id": rq_id,
-            "timeout_s": str(timeout_s),
-            "fingerprint": fingerprint,
-        }
         try:
             with self.r.pipeline(transaction=True) as pipe:
                 pipe.multi()  # explicit: RQ's enqueue checks for it
                 pipe.set(self.keys.job_image(job_id), image)
-                pipe.hset(self.keys.job(job_id), mapping=fields)  # type: ignore[arg-type]
+                pipe.hset(self.keys.job(job_id), mapping=record.queued_hash())  # type: ignore[arg-type]
                 pipe.zadd(self.keys.jobs_index, {job_id: seq})
                 pipe.zadd(self.keys.owner_jobs(owner), {job_id: seq})
                 pipe.sadd(self.keys.jobs_queued, job_id)

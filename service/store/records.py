@@ -73,6 +73,24 @@ class JobRecord:
             lost=json.loads(h.get("lost") or "[]"),
         )
 
+    def queued_hash(self) -> dict[str, str]:
+        """The Redis hash a new queued job is stored as (``from_hash`` reads it back; the
+        fields that are still unset are left out)."""
+        return {
+            "id": self.id,
+            "status": self.status,
+            "model_id": self.model_id,
+            "created_at": self.created_at,
+            "request": self.request,
+            "seq": str(self.seq),
+            "max_iterations": str(self.max_iterations),
+            "owner": self.owner,
+            "attempts": str(self.attempts),
+            "rq_id": self.rq_id,
+            "timeout_s": str(self.timeout_s),
+            "fingerprint": self.fingerprint,
+        }
+
     @property
     def terminal(self) -> bool:
         return self.status in TERMINAL_STATUSES
