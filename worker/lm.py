@@ -125,8 +125,8 @@ def covariance(
     features' image positions ``x`` (k, 2): the cluster-robust (sandwich) estimate
     A⁻¹ (Σ_c g_c g_cᵀ) A⁻¹ · G/(G−1), A = JᵀWJ, g_c = Σ_{i∈c} J_iᵀ W_i r_i over the features
     of each ``cell_px`` image cell. Errors shared by nearby features (points along one edge, a
-    shading difference over one panel) then count once per cell, not once per feature; the
-    larger of the two is returned, per parameter pair, through the larger trace.
+    shading difference over one panel) then count once per cell, not once per feature; of the
+    two estimates, the one with the larger trace is returned.
     """
     Wr = expand(w)
     A = (J.T * Wr) @ J
