@@ -94,6 +94,14 @@ class EstimateResult(BaseModel):
         "the target (1 = identical up to tone); a converged estimate needs at least 0.7 (0.3° "
         "off it is about 0.9–0.99, 1° off 0.4–0.95)."
     )
+    sun_direction: list[float] | None = Field(
+        default=None,
+        description="Unit vector from the target towards the sun (camera frame) that the final "
+        "render used: the request's, tilted by the fit when options.fit_sun is on.",
+    )
+    sun_tilt_deg: float = Field(
+        default=0.0, description="Angle between sun_direction and the request's, degrees."
+    )
     errors: Errors | None = None
     initial_errors: Errors | None = None
     timings_s: dict[str, float] = Field(

@@ -31,6 +31,7 @@ METHOD_PRESETS: dict[str, dict[str, Any]] = {
         "perturbation_trans_frac": 0.01,
         "axis_cone_deg": 90.0,
         "robust": False,
+        "fit_sun": False,
         "max_iterations": 10,
     },
     # Baseline: PnP refinement on ray-cast correspondences only (no learned Jacobian).
@@ -111,6 +112,12 @@ class EstimateOptions(BaseModel):
         description="'per_feature': fit each feature's two rows from the views it was tracked "
         "in; 'common': drop features lost in any view (the paper); 'analytic': from ray-cast "
         "geometry, no perturbed renders (the 'fast' method).",
+    )
+    fit_sun: bool = Field(
+        default=True,
+        description="Solve for a tilt of the sun (up to 10° from the request's direction) "
+        "together with the pose in the refinement: shading features then stop pulling the "
+        "pose when the request's sun direction is a few degrees off.",
     )
     coarse: Literal["pnp", "none"] = Field(
         default="pnp",

@@ -114,6 +114,32 @@ def test_default_estimate_fills_the_result(
     assert all(0 < s < 0.05 * np.linalg.norm(demo_case.t_true) for s in cov.sigma_translation)
 
 
+def _angle_deg(a: object, b: object) -> float:
+    return float(np.degrees(np.arccos(np.clip(np.dot(a, b), -1.0, 1.0))))
+
+
+def test_default_estimate_fits_the_sun(
+    default_run: tuple[EstimateResult, dict], demo_case: Case
+) -> None:
+    """The request's sun is 3° off the reference's; the fitted one is closer to it."""
+    result, _ = default_run
+    asked = demo_case.request.lighting.sun_direction
+    assert _angle_deg(asked, demo_case.sun_true) == pytest.approx(3.0, abs=1e-6)
+    assert result.sun_direction is not None
+    assert np.linalg.norm(result.sun_direction) == pytest.approx(1.0)
+    assert result.sun_tilt_deg == pytest.approx(_angle_deg(asked, result.sun_direction), abs=1e-6)
+    assert 0.5 < result.sun_tilt_deg <= 10.0
+    assert _angle_deg(result.sun_direction, demo_case.sun_true) < 2.0
+
+
+def test_sun_fit_off_keeps_the_requested_sun(demo_path: Path, demo_case: Case) -> None:
+    result, _ = _run(
+        demo_path, demo_case, _with_options(demo_case, fit_sun=False), with_artifacts=False
+    )
+    assert result.sun_tilt_deg == 0.0
+    np.testing.assert_allclose(result.sun_direction, demo_case.request.lighting.sun_direction)
+
+
 def test_artifacts_are_pngs_of_the_image_size(default_run: tuple[EstimateResult, dict]) -> None:
     result, artifacts = default_run
     assert set(artifacts) == set(ARTIFACT_NAMES) == set(result.artifacts)

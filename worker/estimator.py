@@ -194,6 +194,7 @@ def _covariance(session: Session) -> Covariance | None:
     if len(r) < 8:
         return None
     C, sigma = covariance(J, r, w, x)
+    C = C[:6, :6]  # the pose's (marginal over the sun's tilt, when that was fitted)
     # A rotation by angle a has |q| = tan(a/2) ≈ a/2, so σ_angle = 2 σ_q.
     sig_q = np.sqrt(np.clip(np.diag(C)[:3], 0.0, None))
     sig_t = np.sqrt(np.clip(np.diag(C)[3:], 0.0, None))
@@ -226,6 +227,8 @@ def _result(
     if fit is not None and len(fit[1]):
         _, r, w, _ = fit
         rms = float(np.sqrt(np.sum(np.repeat(w, 2) * r**2) / max(np.sum(w), 1e-12) / 2))
+    sun = np.asarray(session.renderer.lighting.sun_direction, dtype=np.float64)
+    asked = np.asarray(session.requested_lighting.sun_direction, dtype=np.float64)
     return EstimateResult(
         pose=pose_to_schema(session.R, session.t),
         initial_pose=pose_to_schema(R0, t0),
@@ -240,6 +243,8 @@ def _result(
         features=int(features),
         rms_residual_px=rms,
         alignment_score=score,
+        sun_direction=[float(x) for x in sun],
+        sun_tilt_deg=float(np.degrees(np.arccos(np.clip(sun @ asked, -1.0, 1.0)))),
         errors=_errors(truth, session.R, session.t),
         initial_errors=_errors(truth, R0, t0),
         timings_s={k: round(v, 4) for k, v in session.timings_s.items()},

@@ -32,13 +32,14 @@ def expand(w: Array) -> Array:
 
 
 def lm_step(J: Array, r: Array, lam: float, w: Array | None = None) -> Array:
-    """δp = (JᵀWJ + λ diag(JᵀWJ))⁻¹ JᵀW r, shape (6,). ``w`` is per feature (k,) or None."""
+    """δp = (JᵀWJ + λ diag(JᵀWJ))⁻¹ JᵀW r, shape (n,) for J (2k, n). ``w`` is per feature
+    (k,) or None."""
     Wr = expand(w) if w is not None else np.ones(len(r))
     JtW = J.T * Wr
     A = JtW @ J
     g = JtW @ r
     D = np.diag(np.diag(A))
-    return np.linalg.solve(A + lam * D + 1e-12 * np.eye(6) * np.trace(A), g)
+    return np.linalg.solve(A + lam * D + 1e-12 * np.eye(len(A)) * np.trace(A), g)
 
 
 def feature_norms(r: Array) -> Array:
@@ -130,7 +131,7 @@ def covariance(
     """
     Wr = expand(w)
     A = (J.T * Wr) @ J
-    dof = max(float(np.sum(Wr)) - 6.0, 1.0)
+    dof = max(float(np.sum(Wr)) - J.shape[1], 1.0)
     sigma2 = float(np.sum(Wr * r**2)) / dof
     A_inv = np.linalg.pinv(A)
     C = sigma2 * A_inv

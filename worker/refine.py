@@ -32,6 +32,7 @@ from worker.lm import (
 )
 from worker.posemath import apply_increment, step_norm
 from worker.session import RenderedView, Session
+from worker.sunfit import SunTilt
 from worker.tracked import Features, MatchedFeatures, TrackedFeatures
 
 Array = NDArray[np.float64]
@@ -57,6 +58,7 @@ class _State:
     learned: LearnedJacobian | None = None
     learned_at: RenderedView | None = None  # the view whose pose the Jacobian was learned at
     inliers: NDArray[np.bool_] | None = None  # pose-consistent features (RANSAC)
+    sun_J: Array | None = None  # (2k, 2) px per radian of sun tilt (see worker.sunfit)
 
 
 def _rows(mask: NDArray[np.bool_]) -> NDArray[np.bool_]:
@@ -99,6 +101,14 @@ def _weights(session: Session, st: _State, J: Array, r: Array, active: NDArray[n
     return irls_increment(J, r, w0=w0)[1]
 
 
+def _step(J: Array, r: Array, lam: float, w: Array, sun: SunTilt | None) -> Array:
+    """The LM step over J's columns; with the sun's tilt among them, its prior joins the solve."""
+    if sun is None or J.shape[1] == 6:
+        return lm_step(J, r, lam, w)
+    Jp, rp = sun.prior_rows()
+    return lm_step(np.vstack([J, Jp]), np.concatenate([r, rp]), lam, np.append(w, 1.0))
+
+
 def _broyden_update(
     session: Session,
     st: _State,
@@ -106,6 +116,7 @@ def _broyden_update(
     common: NDArray[np.bool_],
     h_new: Array,
     dp: Array,
+    sun_motion: Array | None = None,
 ) -> None:
     """Correct each feature's learned rows along the step just taken (Broyden's rank-1 update).
 
@@ -125,6 +136,8 @@ def _broyden_update(
     S = np.concatenate([np.full(3, 0.5 * angle), half])
     s = dp / S
     moved = (h_new[idx] - st.h[idx]).ravel()
+    if sun_motion is not None:  # the part of the motion the sun's tilt explains
+        moved = moved - sun_motion[rows]
     J[rows] += np.outer(moved - predicted, s / (s @ s)) / S
 
 
@@ -140,6 +153,7 @@ def run_lm_stage(
     lam = opts.lambda_init
     rejected = 0  # consecutive rejected trials
     st: _State | None = None
+    sun = SunTilt(session) if opts.fit_sun and stage == "refine" else None
     while session.iterations_left > 0:
         view = session.current_view()
         if st is None or (mode == "matches" and getattr(st.features, "view", None) is not view):
@@ -151,6 +165,9 @@ def run_lm_stage(
                 else:
                     st.learned = learn_at_pose(session, st.h, st.features.feature_normals)
             st.learned_at = view
+        if sun is not None and st.sun_J is None:
+            with session.timed("jacobian"):
+                st.sun_J = sun.jacobian(st.features.measure, view, st.h, st.ok)
         active = st.ok & st.learned.ok
         if st.inliers is not None:
             active &= st.inliers
@@ -170,24 +187,40 @@ def run_lm_stage(
                     keep = active_new[active]
                     active, J, r, w = active_new, J[_rows(keep)], r[_rows(keep)], w[keep]
                     A, J_px = A[keep], J_px[_rows(keep)]
-            dp = lm_step(J, r, lam, w)
+            if sun is not None and st.sun_J is not None:
+                J = np.hstack([J, _whiten(A, st.sun_J[_rows(active)])])
+            dp_all = _step(J, r, lam, w, sun)
+        dp, ds = dp_all[:6], dp_all[6:]
         session.fit = (J, r, w, st.h[active])
         step = step_norm(dp, session.range_)
         cost_model = weighted_cost(r, w)
-        predicted_gain = cost_model - weighted_cost(r - J @ dp, w)
+        predicted_gain = cost_model - weighted_cost(r - J @ dp_all, w)
         if step < opts.epsilon or predicted_gain < opts.cost_tolerance * cost_model:
             # The linear model asks for a move below ε, or promises less than the tolerance:
             # converged, and no render is spent on a trial.
             session.record(stage, cost_model, step, lam, False, int(active.sum()))
             return "step_below_epsilon" if step < opts.epsilon else "cost_converged"
         R_t, t_t = apply_increment(session.R, session.t, dp)
+        sun_before = sun.ab if sun is not None else None
+        sun_motion = None  # image motion (2k,) the trial's change of sun predicts
+        if sun is not None and st.sun_J is not None:
+            sun.set(sun.clip(sun.ab + ds))
+            sun_motion = st.sun_J @ (sun.ab - sun_before)
         trial = session.render_view(R_t, t_t)
         guess = st.h.copy()
         guess[active] += (J_px @ dp).reshape(-1, 2)
+        if sun_motion is not None:
+            guess += sun_motion.reshape(-1, 2)
         with session.timed("track"):
             h_t, ok_t = st.features.measure(trial, guess)
         common = ok_t[active]
-        if common.sum() < opts.min_features:
+        r_t = _whiten(A, (st.features.x_ref - h_t)[active].ravel())
+        cost_now = weighted_cost(r[_rows(common)], w[common])
+        cost_trial = weighted_cost(r_t[_rows(common)], w[common])
+        lost = common.sum() < opts.min_features
+        if sun is not None and (lost or cost_trial >= cost_now):
+            sun.set(sun_before)  # the trial is rejected: back to the sun it replaced
+        if lost:
             # The trial's render lost too many of the features to compare it on the same set:
             # treat it as a failed step (smaller next time).
             session.record(stage, weighted_cost(r, w), 0.0, lam, False, int(common.sum()))
@@ -196,13 +229,10 @@ def run_lm_stage(
             if rejected >= MAX_REJECTIONS:
                 return "stalled"
             continue
-        cost_now = weighted_cost(r[_rows(common)], w[common])
-        r_t = _whiten(A, (st.features.x_ref - h_t)[active].ravel())
-        cost_trial = weighted_cost(r_t[_rows(common)], w[common])
         if cost_trial < cost_now:
             rejected = 0
             session.accept(trial)
-            _broyden_update(session, st, active, common, h_t, dp)
+            _broyden_update(session, st, active, common, h_t, dp, sun_motion)
             st.h, st.ok = h_t, st.ok & ok_t
             session.fit = (J[_rows(common)], r_t[_rows(common)], w[common], h_t[active][common])
             session.record(stage, cost_trial, step, lam, True, int(common.sum()))

@@ -177,6 +177,11 @@ class Renderer:
         self._update_sun()
         self.params.update()
 
+    @property
+    def lighting(self) -> LightingSpec:
+        """The lighting renders use now."""
+        return self._lighting
+
     def set_lighting(self, lighting: LightingSpec) -> None:
         self._lighting = lighting
         self.params["sun.irradiance.value"] = lighting.sun_irradiance

@@ -24,7 +24,7 @@ from worker.images import FloatImage
 from worker.metrics import rotation_error_deg, translation_error
 from worker.photometry import render_to_grey, to_u8
 from worker.posemath import pose_to_schema
-from worker.renderer import Renderer
+from worker.renderer import LightingSpec, Renderer
 
 Array = NDArray[np.float64]
 ProgressCallback = Callable[[IterationRecord, int], None]
@@ -60,6 +60,8 @@ class Session:
     #: whitened rows, whitened residuals, weights, and the features' image positions (k, 2).
     fit: tuple[Array, Array, Array, Array] | None = None
     rng: np.random.Generator = field(default_factory=np.random.default_rng)
+    #: The request's lighting (a fitted sun changes the renderer's, see worker.sunfit).
+    requested_lighting: LightingSpec = field(init=False)
     _renders_at_last_record: int = 0
     _ref_u8: NDArray[np.uint8] | None = None
     _described: dict[tuple[str, int], Described] = field(default_factory=dict)
@@ -68,6 +70,7 @@ class Session:
     def __post_init__(self) -> None:
         # The renderer is shared across estimates: count this session's renders only.
         self._renders_at_last_record = self.renderer.stats.renders
+        self.requested_lighting = self.renderer.lighting
 
     @property
     def camera(self) -> PinholeCamera:

@@ -46,6 +46,7 @@ class Case:
     request: EstimateRequest
     R_true: Array
     t_true: Array
+    sun_true: Array  # the sun the reference was rendered with (the request's is off by sun_error)
 
 
 def random_rotation(rng: np.random.Generator) -> Array:
@@ -135,9 +136,8 @@ def make_case(
     cam = PinholeCamera.from_schema(camera)
     R, t = draw_truth(model, cam, spec, rng)
     sun = draw_sun(rng)
-    reference = render_reference(
-        model, cam, R, t, perturb_direction(sun, spec.sun_error_deg, rng), spec, rng
-    )
+    sun_true = perturb_direction(sun, spec.sun_error_deg, rng)
+    reference = render_reference(model, cam, R, t, sun_true, spec, rng)
     R0 = R @ axis_angle_to_matrix(random_unit(rng), np.radians(spec.offset_deg))
     t0 = t + random_unit(rng) * spec.offset_frac * float(np.linalg.norm(t))
     request = EstimateRequest(
@@ -147,4 +147,4 @@ def make_case(
         options=options or EstimateOptions(),
         ground_truth=pose_json(R, t),
     )
-    return Case(reference, request, R, t)
+    return Case(reference, request, R, t, sun_true)
