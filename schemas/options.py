@@ -32,6 +32,7 @@ METHOD_PRESETS: dict[str, dict[str, Any]] = {
         "axis_cone_deg": 90.0,
         "robust": False,
         "fit_sun": False,
+        "refine_passes": 1,
         "max_iterations": 10,
     },
     # Baseline: PnP refinement on ray-cast correspondences only (no learned Jacobian).
@@ -54,7 +55,7 @@ class EstimateOptions(BaseModel):
         "refinement on ray-cast correspondences only (a baseline); 'fast': the default with "
         "the Jacobian from ray-cast geometry instead of perturbed renders.",
     )
-    max_iterations: int = Field(default=15, ge=1, le=100, description="Iteration cap (all stages).")
+    max_iterations: int = Field(default=20, ge=1, le=100, description="Iteration cap (all stages).")
     epsilon: float = Field(
         default=2e-5,
         gt=0.0,
@@ -112,6 +113,15 @@ class EstimateOptions(BaseModel):
         description="'per_feature': fit each feature's two rows from the views it was tracked "
         "in; 'common': drop features lost in any view (the paper); 'analytic': from ray-cast "
         "geometry, no perturbed renders (the 'fast' method).",
+    )
+    refine_passes: int = Field(
+        default=2,
+        ge=1,
+        le=5,
+        description="Passes of the refinement: each later pass starts at the pose the previous "
+        "one ended at and makes its features, tone match, sharpness match and Jacobian afresh "
+        "there (with the fitted sun), instead of keeping those of a render up to a few tenths "
+        "of a degree off.",
     )
     fit_sun: bool = Field(
         default=True,

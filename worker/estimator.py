@@ -2,8 +2,9 @@
 
 'default': PnP on ray-cast correspondences until its steps are small (falling back to the
 learned-Jacobian LM on descriptor matches when PnP cannot run), then the learned-Jacobian LM on
-reference corners tracked with KLT. 'paper': the LM on four matches per iteration from the start.
-'pnp': the PnP stage alone (a baseline).
+reference corners tracked with KLT, in passes (``options.refine_passes``) that each set up their
+features and Jacobian afresh at the pose the previous one reached. 'paper': the LM on four
+matches per iteration from the start. 'pnp': the PnP stage alone (a baseline).
 """
 
 from __future__ import annotations
@@ -170,6 +171,13 @@ def _run_pipeline(session: Session) -> StopReason:
     if opts.refine_features == "klt" and not coarse_ok:
         run_lm_stage(session, "matches", "coarse", handover_step=COARSE_HANDOVER_STEP)
     outcome = run_lm_stage(session, opts.refine_features, "refine")
+    for _ in range(opts.refine_passes - 1):
+        if session.iterations_left <= 0:
+            break
+        try:
+            outcome = run_lm_stage(session, opts.refine_features, "refine")
+        except TooFewFeaturesError:
+            break  # the previous pass's pose stands (a pass moves only on accepted steps)
     return "max_iterations" if outcome == "handover" else outcome
 
 

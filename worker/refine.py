@@ -4,7 +4,9 @@ Features are either fixed reference corners tracked into each render with KLT ('
 default: one feature set for the whole stage, so the Jacobian can be reused while the pose moves
 little) or descriptor matches re-made at each new pose ('matches', the paper). A trial pose is
 judged on the same features as the current one: its render is measured for the features the
-current cost used, and only then compared.
+current cost used, and only then compared. With ``options.fit_sun`` the refinement also solves
+for a tilt of the sun (:mod:`worker.sunfit`): two more columns of the Jacobian, moved by the
+same steps and undone with a rejected one.
 """
 
 from __future__ import annotations

@@ -52,7 +52,9 @@ class SunTilt:
         self.requested: LightingSpec = session.requested_lighting
         self.s0 = np.asarray(self.requested.sun_direction, dtype=np.float64)
         self.e1, self.e2 = tangent_basis(self.s0)
-        self.ab = np.zeros(2)
+        # Start from the sun renders use now (an earlier stage may have tilted it).
+        now = np.asarray(session.renderer.lighting.sun_direction, dtype=np.float64)
+        self.ab = np.array([now @ self.e1, now @ self.e2]) / max(float(now @ self.s0), 1e-6)
 
     def direction(self, ab: Array | None = None) -> Array:
         a, b = self.ab if ab is None else ab
