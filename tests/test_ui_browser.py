@@ -204,6 +204,8 @@ def test_submit_an_estimate_through_the_form_and_read_the_result(
     assert width > 200 and height > 100
     expect(page.locator("#sigma-table tbody tr")).to_have_count(7)
     expect(page.locator("#errors-table")).to_contain_text("rotation (°)")
+    tilt = f"{result['sun_tilt_deg']:.2f}° from the request's"
+    expect(page.locator("#run-facts")).to_contain_text(tilt)  # the sun the fit ended with
     expect(page.locator("#request-json")).to_contain_text('"model_id": "demo-sat"')
     with page.expect_download() as download:
         page.click("#download-result")

@@ -91,6 +91,9 @@ function showRunFacts(result) {
     ["Features at the end", result.features], ["RMS residual", `${num(result.rms_residual_px, 3)} px`],
     ...(result.alignment_score === undefined ? []
       : [["Alignment score (NCC, 1 = identical)", num(result.alignment_score, 3)]]),
+    ...(result.sun_direction
+      ? [["Sun used (camera frame)", `[${result.sun_direction.map((v) => fixed(v, 4)).join(", ")}], ${fixed(result.sun_tilt_deg, 2)}° from the request's`]]
+      : []),
     ["Mitsuba variant", result.variant],
     ...Object.entries(result.timings_s).map(([k, v]) => [`Time in ${k}`, seconds(v)]),
   ];
