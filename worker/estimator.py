@@ -35,6 +35,8 @@ from worker.refine import run_lm_stage
 from worker.renderer import LightingSpec, Renderer
 from worker.session import CancelCheck, ProgressCallback, RenderedView, Session
 
+#: Refinement passes added after one that ended 'slow' (see worker.refine).
+MAX_EXTRA_PASSES = 2
 #: Renderers kept per process (scene build and kernel tracing are paid once per entry).
 RENDERER_CACHE_SIZE = 3
 #: Shortest side of a perturbation render, px.
@@ -171,14 +173,19 @@ def _run_pipeline(session: Session) -> StopReason:
     if opts.refine_features == "klt" and not coarse_ok:
         run_lm_stage(session, "matches", "coarse", handover_step=COARSE_HANDOVER_STEP)
     outcome = run_lm_stage(session, opts.refine_features, "refine")
-    for _ in range(opts.refine_passes - 1):
-        if session.iterations_left <= 0:
-            break
+    passes = 1
+    # A pass that ended 'slow' (its Jacobian overstates the motion) earns one more, up to
+    # MAX_EXTRA_PASSES beyond those asked for.
+    while session.iterations_left > 0 and (
+        passes < opts.refine_passes
+        or (outcome == "slow" and passes < opts.refine_passes + MAX_EXTRA_PASSES)
+    ):
         try:
             outcome = run_lm_stage(session, opts.refine_features, "refine")
         except TooFewFeaturesError:
             break  # the previous pass's pose stands (a pass moves only on accepted steps)
-    return "max_iterations" if outcome == "handover" else outcome
+        passes += 1
+    return "max_iterations" if outcome in ("handover", "slow") else outcome
 
 
 def _errors(

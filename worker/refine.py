@@ -38,7 +38,9 @@ from worker.sunfit import SunTilt
 from worker.tracked import Features, MatchedFeatures, TrackedFeatures
 
 Array = NDArray[np.float64]
-Outcome = Literal["step_below_epsilon", "cost_converged", "max_iterations", "stalled", "handover"]
+Outcome = Literal[
+    "step_below_epsilon", "cost_converged", "max_iterations", "stalled", "handover", "slow"
+]
 
 #: Median predicted feature motion (px) below which a step does not update the Jacobian.
 BROYDEN_MIN_MOTION_PX = 0.3
@@ -47,6 +49,11 @@ MAX_REJECTIONS = 3
 #: λ beyond which repeated rejections end the stage.
 LAMBDA_MAX = 1e4
 LAMBDA_MIN = 1e-9
+#: Accepted steps in a row, each more than SLOW_RATIO of the one before, that end the stage as
+#: 'slow': with a right Jacobian the steps shrink fast; steady ones mean it overstates how far
+#: the features move, and a Jacobian learned afresh at the current pose does better.
+SLOW_STEPS = 3
+SLOW_RATIO = 0.5
 #: RANSAC threshold over δp: at least this, px, or a fraction of the median residual.
 RANSAC_MIN_PX = 1.5
 RANSAC_REL = 0.25
@@ -154,6 +161,7 @@ def run_lm_stage(
     opts = session.options
     lam = opts.lambda_init
     rejected = 0  # consecutive rejected trials
+    steady, last_step = 0, np.inf  # accepted steps in a row that did not shrink by half
     st: _State | None = None
     sun = SunTilt(session) if opts.fit_sun and stage == "refine" else None
     while session.iterations_left > 0:
@@ -239,6 +247,9 @@ def run_lm_stage(
             session.fit = (J[_rows(common)], r_t[_rows(common)], w[common], h_t[active][common])
             session.record(stage, cost_trial, step, lam, True, int(common.sum()))
             lam = max(lam * 0.1, LAMBDA_MIN)
+            steady, last_step = (steady + 1 if step > SLOW_RATIO * last_step else 0), step
+            if steady >= SLOW_STEPS - 1 and opts.reuse_jacobian and stage == "refine":
+                return "slow"
             if handover_step is not None and step < handover_step:
                 return "handover"
             if step < opts.epsilon:
