@@ -148,40 +148,25 @@ def test_a_pass_whose_steps_do_not_shrink_is_followed_by_a_fresh_one(demo_path: 
     """A small (128 px) view where the first pass's Jacobian overstates the motion: its steps
     stay the same size (0.6° → 0.49° in four steps). The pass ends 'slow' and a new one, with a
     Jacobian learned where it stopped, converges, even when one pass was asked for."""
-    from worker.engine import render_png
-    from worker.posemath import axis_angle_to_matrix
+    from test_service_e2e import R_TRUE, T_TRUE, camera, initial_pose, pose
 
-    axis = np.array([1.0, 0.6, 0.3]) / np.linalg.norm([1.0, 0.6, 0.3])
-    R, t = axis_angle_to_matrix(axis, np.radians(110.0)), np.array([0.3, -0.2, 14.0])
-    rng = np.random.default_rng(0)
-    unit = lambda v: v / np.linalg.norm(v)  # noqa: E731
-    R0 = R @ axis_angle_to_matrix(unit(rng.normal(size=3)), np.radians(3.0))
-    t0 = t + unit(rng.normal(size=3)) * 0.03 * np.linalg.norm(t)
-    cam = Camera(width=128, height=128, fx=140.8, fy=140.8, cx=63.5, cy=63.5)
-    reference = render_png(
-        demo_path,
-        RenderRequest(camera=cam, pose=_pose(R, t), spp=32),
-    )
+    from worker.engine import render_png, run_estimate
+
+    truth = pose(R_TRUE, T_TRUE)
+    render = RenderRequest.model_validate({"camera": camera(128), "pose": truth, "spp": 32})
+    reference = render_png(demo_path, render)
     for passes in (1, 2):
-        request = EstimateRequest(
-            camera=cam,
-            initial_pose=_pose(R0, t0),
-            ground_truth=_pose(R, t),
-            options=EstimateOptions(spp=128, perturbation_spp=32, refine_passes=passes),
-        )
-        from worker.engine import run_estimate
-
+        request = EstimateRequest.model_validate({
+            "camera": camera(128),
+            "initial_pose": initial_pose(),
+            "ground_truth": truth,
+            "options": {"spp": 128, "perturbation_spp": 32, "refine_passes": passes},
+        })  # fmt: skip
         result, _ = run_estimate(demo_path, reference, request, with_artifacts=False)
         learning = [h for h in result.history if h.stage == "refine" and h.renders > 12]
         assert len(learning) >= 2, passes
         assert result.converged, (passes, result.reason)
         assert result.errors is not None and result.errors.rotation_deg < 0.2, passes
-
-
-def _pose(R: np.ndarray, t: np.ndarray) -> Pose:
-    from worker.posemath import matrix_to_quaternion
-
-    return Pose(t=[float(x) for x in t], quaternion=[float(x) for x in matrix_to_quaternion(R)])
 
 
 def test_artifacts_are_pngs_of_the_image_size(default_run: tuple[EstimateResult, dict]) -> None:

@@ -112,7 +112,7 @@ def _weights(session: Session, st: _State, J: Array, r: Array, active: NDArray[n
 
 def _step(J: Array, r: Array, lam: float, w: Array, sun: SunTilt | None) -> Array:
     """The LM step over J's columns; with the sun's tilt among them, its prior joins the solve."""
-    if sun is None or J.shape[1] == 6:
+    if sun is None:
         return lm_step(J, r, lam, w)
     Jp, rp = sun.prior_rows()
     return lm_step(np.vstack([J, Jp]), np.concatenate([r, rp]), lam, np.append(w, 1.0))
@@ -197,7 +197,7 @@ def run_lm_stage(
                     keep = active_new[active]
                     active, J, r, w = active_new, J[_rows(keep)], r[_rows(keep)], w[keep]
                     A, J_px = A[keep], J_px[_rows(keep)]
-            if sun is not None and st.sun_J is not None:
+            if st.sun_J is not None:
                 J = np.hstack([J, _whiten(A, st.sun_J[_rows(active)])])
             dp_all = _step(J, r, lam, w, sun)
         dp, ds = dp_all[:6], dp_all[6:]

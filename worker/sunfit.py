@@ -16,6 +16,7 @@ sun s0: s = normalise(s0 + a e1 + b e2).
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import replace
 
 import numpy as np
@@ -25,6 +26,8 @@ from worker.renderer import LightingSpec
 from worker.session import RenderedView, Session
 
 Array = NDArray[np.float64]
+#: ``Features.measure``: positions (k, 2) of the features in a render, and which were found.
+Measure = Callable[[RenderedView, Array | None], tuple[Array, NDArray[np.bool_]]]
 
 #: Sun tilt of the two renders that measure the features' motion, degrees.
 TILT_STEP_DEG = 2.0
@@ -82,7 +85,7 @@ class SunTilt:
         return float(np.degrees(np.arctan(np.linalg.norm(self.ab))))
 
     def jacobian(
-        self, measure: object, view: RenderedView, h: Array, ok: NDArray[np.bool_]
+        self, measure: Measure, view: RenderedView, h: Array, ok: NDArray[np.bool_]
     ) -> Array:
         """Image motion of each feature per radian of tilt along e1 and e2, (2k, 2).
 
@@ -96,7 +99,7 @@ class SunTilt:
         for e in (np.array([step, 0.0]), np.array([0.0, step])):
             self.set(base + e)
             tilted = self.session.render_view(view.R, view.t)
-            h_e, ok_e = measure(tilted, h)  # type: ignore[operator]
+            h_e, ok_e = measure(tilted, h)
             keep &= ok_e
             cols.append(((h_e - h) / step).ravel())
         self.set(base)
