@@ -135,7 +135,7 @@ import json, sys
 from pathlib import Path
 from schemas import RenderRequest
 from worker.demosat import demo_satellite_path
-from worker.engine import render_png
+from worker.entry import render_png
 spec = json.loads(sys.argv[1])
 model = demo_satellite_path(Path(spec["data_dir"]))
 for name, request in spec["renders"].items():

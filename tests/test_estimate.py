@@ -1,4 +1,4 @@
-"""Full estimates on small renders (worker/estimator.py through worker/engine.py).
+"""Full estimates on small renders (worker/estimator.py through worker/entry.py).
 
 References come from worker.synth: rendered with another renderer setup (path tracing, Gaussian
 filter, gamma 2.2, exposure change, sun 3° off, noise, 8 bits) at a known pose; the initial guess
@@ -50,7 +50,7 @@ def _with_options(case: Case, **options: object) -> EstimateRequest:
 
 
 def _run(path: Path, case: Case, request: EstimateRequest | None = None, **kw: object):  # noqa: ANN202
-    from worker.engine import run_estimate
+    from worker.entry import run_estimate
 
     return run_estimate(path, encode_png(case.reference), request or case.request, **kw)
 
@@ -150,7 +150,7 @@ def test_a_pass_whose_steps_do_not_shrink_is_followed_by_a_fresh_one(demo_path: 
     Jacobian learned where it stopped, converges, even when one pass was asked for."""
     from test_service_e2e import R_TRUE, T_TRUE, camera, initial_pose, pose
 
-    from worker.engine import render_png, run_estimate
+    from worker.entry import render_png, run_estimate
 
     truth = pose(R_TRUE, T_TRUE)
     render = RenderRequest.model_validate({"camera": camera(128), "pose": truth, "spp": 32})

@@ -40,7 +40,7 @@ ENGINE_MODULES = [
     "worker.estimator",
     "worker.synth",
     "worker.artifacts",
-    "worker.engine",
+    "worker.entry",
     "worker.demosat",
     "worker.demosat_geometry",
     "worker.demosat_textures",

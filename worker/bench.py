@@ -211,7 +211,7 @@ def run_serial(tasks: list[CaseTask], progress: Progress, done: dict[int, CaseOu
 def _init_worker(threads: int) -> None:
     import drjit as dr
 
-    from worker.engine import init_renderer_backend
+    from worker.entry import init_renderer_backend
 
     init_renderer_backend()
     dr.set_thread_count(threads)
@@ -401,7 +401,7 @@ def run_sensor_comparison(args: argparse.Namespace) -> int:
 
     from worker.benchsensor import compare
     from worker.demosat import demo_satellite_path
-    from worker.engine import init_renderer_backend
+    from worker.entry import init_renderer_backend
     from worker.meshes import load_model
 
     variant = init_renderer_backend()
@@ -419,7 +419,7 @@ def run(args: argparse.Namespace) -> int:
     """The ``bench`` command: run every case, then write the outputs (also when interrupted)."""
     if args.sensor:
         return run_sensor_comparison(args)
-    from worker.engine import init_renderer_backend
+    from worker.entry import init_renderer_backend
 
     config, models = prepare(args)
     env = environment(init_renderer_backend())

@@ -81,7 +81,7 @@ def _progress(enabled: bool) -> tuple[Callable[..., None] | None, Callable[[], N
 
 def cmd_estimate(args: argparse.Namespace) -> int:
     from schemas.estimate import EstimateRequest
-    from worker.engine import run_estimate
+    from worker.entry import run_estimate
 
     request = _read_json(args.request, EstimateRequest)
     image = _read_bytes(args.image)
@@ -110,7 +110,7 @@ def cmd_render(args: argparse.Namespace) -> int:
     from schemas.estimate import EstimateRequest
     from schemas.pose import Pose
     from schemas.render import RenderRequest
-    from worker.engine import render_png
+    from worker.entry import render_png
 
     request = _read_json(args.request, EstimateRequest)
     pose = _read_json(args.pose, Pose)

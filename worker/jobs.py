@@ -32,7 +32,7 @@ from schemas.render import RenderRequest
 from schemas.settings import Settings, get_settings
 from service.logs import log_context
 from service.store import JobRecord, JobStats, JobStore, Keys, Leases, ModelStore, Reaper
-from worker.engine import render_png, run_estimate
+from worker.entry import render_png, run_estimate
 from worker.exceptions import EstimationCancelled, ProxposeError
 
 log = logging.getLogger(__name__)

@@ -59,7 +59,7 @@ def run(args: argparse.Namespace) -> int:
     from schemas.settings import get_settings
     from service.logs import configure_logging
     from service.store import Keys, Queues
-    from worker.engine import init_renderer_backend
+    from worker.entry import init_renderer_backend
     from worker.jobs import register_demo_model
 
     settings = get_settings()
@@ -198,7 +198,7 @@ def _forget_dead_local_workers(r: redis.Redis) -> None:
 def _warm_up(data_dir: Path, demo: ModelPublic) -> None:
     """One tiny render of the demo model: loads it and compiles the renderer's kernels."""
     from schemas import Camera, Pose, RenderRequest
-    from worker.engine import render_png
+    from worker.entry import render_png
     from worker.jobs import model_cache_path
 
     t0 = time.monotonic()
