@@ -1,7 +1,7 @@
 """Pose of the target: model frame to camera frame, b = R a + t.
 
 The attitude may be given in exactly one of three forms. They are checked here in plain Python
-(the contract carries no numpy), and converted to matrices by ``worker.posemath``.
+(the contract carries no numpy), and converted to matrices by ``worker.engine.posemath``.
 """
 
 from __future__ import annotations

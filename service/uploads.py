@@ -18,7 +18,7 @@ from PIL import Image
 
 from schemas.models import MODEL_FILE_TYPES
 
-#: Image formats accepted for references (the same as ``worker.images``).
+#: Image formats accepted for references (the same as ``worker.engine.images``).
 IMAGE_FORMATS = ("PNG", "JPEG", "TIFF")
 
 

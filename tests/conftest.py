@@ -24,7 +24,7 @@ SHARED_MODEL_FILES = {
 @pytest.fixture(scope="session")
 def variant() -> str:
     """The Mitsuba variant for this test session (llvm_ad_rgb when available)."""
-    from worker.variant import choose_variant
+    from worker.engine.variant import choose_variant
 
     return choose_variant(os.environ.get("PROXPOSE_VARIANT", "auto"))
 

@@ -15,7 +15,7 @@ import numpy as np
 import pytest
 from PIL import Image
 
-from worker.images import decode_image
+from worker.engine.images import decode_image
 
 REPO = Path(__file__).resolve().parents[1]
 PROXPOSE = shutil.which("proxpose", path=str(Path(sys.executable).parent)) or "proxpose"
@@ -37,7 +37,7 @@ def run_cli(*args: str | Path, timeout: float = 300) -> subprocess.CompletedProc
 
 
 def _pose_json(R: np.ndarray, t: np.ndarray) -> dict[str, Any]:
-    from worker.posemath import matrix_to_quaternion
+    from worker.engine.posemath import matrix_to_quaternion
 
     return {"t": t.tolist(), "quaternion": matrix_to_quaternion(R).tolist()}
 
@@ -48,7 +48,7 @@ def case_dir(tmp_path_factory: pytest.TempPathFactory, variant: str) -> Path:
     would (initial guess 3° and 3 % off the truth, which is given as ground_truth)."""
     from schemas.camera import Camera
     from worker.demosat import demo_satellite_path
-    from worker.meshes import load_model
+    from worker.engine.meshes import load_model
     from worker.synth import CaseSpec, make_case
 
     d = tmp_path_factory.mktemp("cli")

@@ -19,14 +19,14 @@ from schemas.options import EstimateOptions
 from schemas.pose import Pose
 from schemas.render import RenderRequest
 from worker.artifacts import ARTIFACT_NAMES
-from worker.exceptions import (
+from worker.engine.exceptions import (
     EmptyRenderError,
     EstimationCancelled,
     ImageSizeMismatchError,
     TooFewFeaturesError,
 )
-from worker.images import decode_image, encode_png
-from worker.meshes import LoadedModel, load_model
+from worker.engine.images import decode_image, encode_png
+from worker.engine.meshes import LoadedModel, load_model
 from worker.synth import Case, CaseSpec, make_case
 
 pytestmark = pytest.mark.slow

@@ -1,4 +1,4 @@
-"""Image decoding and encoding (worker/images.py): formats, depths, channel order, limits."""
+"""Image decoding and encoding (worker/engine/images.py): formats, depths, channel order, limits."""
 
 from __future__ import annotations
 
@@ -12,8 +12,8 @@ import pytest
 import tifffile
 from PIL import Image
 
-from worker.exceptions import ImageDecodeError, ImageSizeMismatchError, ImageTooLargeError
-from worker.images import (
+from worker.engine.exceptions import ImageDecodeError, ImageSizeMismatchError, ImageTooLargeError
+from worker.engine.images import (
     check_size,
     decode_image,
     decode_image_file,

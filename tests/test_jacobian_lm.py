@@ -6,7 +6,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from worker.camera import PinholeCamera
+from worker.engine.camera import PinholeCamera
+from worker.engine.metrics import rotation_error_deg
+from worker.engine.posemath import apply_increment, axis_angle_to_matrix, gibbs_to_matrix
 from worker.jacobian import (
     MAX_DESIGN_CONDITION,
     design_condition,
@@ -16,8 +18,6 @@ from worker.jacobian import (
     sample_perturbations,
 )
 from worker.lm import covariance, irls_increment, lm_step, ransac_increment, weighted_cost
-from worker.metrics import rotation_error_deg
-from worker.posemath import apply_increment, axis_angle_to_matrix, gibbs_to_matrix
 
 HALF_WIDTH = np.array([0.05, 0.05, 0.2])  # translation box, scene units
 

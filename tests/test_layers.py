@@ -19,15 +19,15 @@ REPO = Path(__file__).resolve().parents[1]
 
 #: The engine: pose math, rendering, features, learning, estimation, artifacts, entry points.
 ENGINE_MODULES = [
-    "worker.posemath",
-    "worker.metrics",
-    "worker.camera",
-    "worker.images",
-    "worker.meshes",
-    "worker.variant",
-    "worker.renderer",
+    "worker.engine.posemath",
+    "worker.engine.metrics",
+    "worker.engine.camera",
+    "worker.engine.images",
+    "worker.engine.meshes",
+    "worker.engine.variant",
+    "worker.engine.renderer",
     "worker.features",
-    "worker.photometry",
+    "worker.engine.photometry",
     "worker.edges",
     "worker.tracked",
     "worker.jacobian",

@@ -1,4 +1,4 @@
-"""Model loading (worker/meshes.py): every format, node transforms, textures, vertex colours,
+"""Model loading (worker/engine/meshes.py): every format, node transforms, textures, vertex colours,
 the cache, and the errors. Small models are written with trimesh (or by hand) into tmp_path."""
 
 from __future__ import annotations
@@ -12,9 +12,9 @@ import trimesh
 from conftest import shared_model
 from PIL import Image
 
-from worker.exceptions import ModelLoadError, ModelTooLargeError
-from worker.images import srgb_decode
-from worker.meshes import LoadedModel, load_model
+from worker.engine.exceptions import ModelLoadError, ModelTooLargeError
+from worker.engine.images import srgb_decode
+from worker.engine.meshes import LoadedModel, load_model
 
 #: A 2×2 texture (8 px per cell): red, green / blue, yellow — every orientation error shows.
 CELLS = np.array([[(230, 20, 20), (20, 200, 40)], [(30, 40, 220), (240, 220, 30)]], np.uint8)
@@ -130,8 +130,8 @@ def test_obj_with_mtl_texture_and_uvs(tmp_path: Path) -> None:
 def test_obj_texture_renders_the_right_way_up(tmp_path: Path, variant: str) -> None:
     """End to end: in the camera (x right, y down) the quad's (−1, −1) corner is top-left, so
     the texture's top-left cell must appear top-left in the render."""
-    from worker.camera import PinholeCamera
-    from worker.renderer import LightingSpec, Renderer
+    from worker.engine.camera import PinholeCamera
+    from worker.engine.renderer import LightingSpec, Renderer
 
     model = load_model(_write_textured_obj(tmp_path / "obj"))
     camera = PinholeCamera(64, 64, 60.0, 60.0, 31.5, 31.5)
@@ -262,9 +262,9 @@ def _pose_in_front(model: LoadedModel, distance_radii: float = 2.5) -> tuple:
 
 
 def test_demo_satellite_loads_and_renders(tmp_path: Path, variant: str) -> None:
-    from worker.camera import PinholeCamera
     from worker.demosat import demo_satellite_path
-    from worker.renderer import LightingSpec, Renderer
+    from worker.engine.camera import PinholeCamera
+    from worker.engine.renderer import LightingSpec, Renderer
 
     model = load_model(demo_satellite_path(tmp_path))
     assert model.textured and 5_000 <= model.n_faces <= 30_000

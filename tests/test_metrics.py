@@ -1,12 +1,12 @@
-"""Pose error metrics (worker/metrics.py): the paper's ∠ΔR and ‖Δt‖, and the SPEED score."""
+"""Pose error metrics (worker/engine/metrics.py): the paper's ∠ΔR and ‖Δt‖, and the SPEED score."""
 
 from __future__ import annotations
 
 import numpy as np
 import pytest
 
-from worker.metrics import rotation_error_deg, speed_score, translation_error
-from worker.posemath import axis_angle_to_matrix, quaternion_to_matrix
+from worker.engine.metrics import rotation_error_deg, speed_score, translation_error
+from worker.engine.posemath import axis_angle_to_matrix, quaternion_to_matrix
 
 
 def _random_rotation(rng: np.random.Generator) -> np.ndarray:

@@ -1,5 +1,5 @@
-"""Pose math (worker/posemath.py): the paper's Cayley/Gibbs map, quaternions, axis-angle, local
-increments and the schema conversions. Pure numpy, seeded."""
+"""Pose math (worker/engine/posemath.py): the paper's Cayley/Gibbs map, quaternions, axis-angle,
+local increments and the schema conversions. Pure numpy, seeded."""
 
 from __future__ import annotations
 
@@ -10,8 +10,8 @@ from hypothesis import strategies as st
 from scipy.linalg import polar
 
 from schemas.pose import Pose
-from worker.exceptions import InvalidPoseError
-from worker.posemath import (
+from worker.engine.exceptions import InvalidPoseError
+from worker.engine.posemath import (
     apply_increment,
     axis_angle_to_matrix,
     compose,

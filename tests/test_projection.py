@@ -1,4 +1,4 @@
-"""The renderer images a point where K [R | t] says (worker/renderer.py, worker/camera.py).
+"""The renderer images a point where K [R | t] says (worker/engine/renderer.py and camera.py).
 
 Small spheres at known model points, lit by ambient light only, render as uniform discs; each
 disc's intensity centroid is compared with the exact centre of the sphere's image (an ellipse
@@ -18,10 +18,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from worker.camera import PinholeCamera
-from worker.meshes import LoadedModel, MeshPart
-from worker.posemath import axis_angle_to_matrix
-from worker.renderer import LightingSpec, Renderer
+from worker.engine.camera import PinholeCamera
+from worker.engine.meshes import LoadedModel, MeshPart
+from worker.engine.posemath import axis_angle_to_matrix
+from worker.engine.renderer import LightingSpec, Renderer
 
 REPO = Path(__file__).resolve().parents[1]
 #: Centroid agreement required, px.
@@ -158,7 +158,7 @@ SCALAR_SCRIPT = """
 import json, sys
 import numpy as np
 sys.path.insert(0, {tests!r})
-from worker.variant import choose_variant
+from worker.engine.variant import choose_variant
 variant = choose_variant("scalar_rgb")
 import test_projection as tp
 image, expected = tp.render_spheres(tp.CAMERAS["offcentre"])

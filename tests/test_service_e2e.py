@@ -28,7 +28,7 @@ from rq import Queue
 
 from schemas.settings import get_settings
 from service.store import JobStore, Keys
-from worker.posemath import axis_angle_to_matrix, matrix_to_quaternion, quaternion_to_matrix
+from worker.engine.posemath import axis_angle_to_matrix, matrix_to_quaternion, quaternion_to_matrix
 
 pytestmark = pytest.mark.slow
 

@@ -52,8 +52,8 @@ def test_cli_parser_loads_nothing_heavy() -> None:
 
 
 def test_api_limits_match_the_engine() -> None:
-    from worker.images import MAX_IMAGE_PIXELS
-    from worker.meshes import MAX_FACES, MESH_TYPES
+    from worker.engine.images import MAX_IMAGE_PIXELS
+    from worker.engine.meshes import MAX_FACES, MESH_TYPES
 
     defaults = Settings()
     assert MODEL_FILE_TYPES == MESH_TYPES

@@ -8,7 +8,7 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 
-from worker.renderer import LightingSpec
+from worker.engine.renderer import LightingSpec
 from worker.sunfit import MAX_TILT_DEG, PRIOR_PX_PER_RAD, SunTilt, tangent_basis
 
 

@@ -27,7 +27,7 @@ from service.pages import FILL_FRACTION, PreviewCache, suggested_request
 from service.resources import estimate_outcome
 from service.routes.pages import STATIC_DIR, TEMPLATES_DIR
 from service.store import Keys, ModelStore
-from worker.posemath import axis_angle_to_matrix, matrix_to_quaternion, quaternion_to_matrix
+from worker.engine.posemath import axis_angle_to_matrix, matrix_to_quaternion, quaternion_to_matrix
 
 #: Redis database of this module (the session's Redis is shared with other modules).
 DB = 6

@@ -17,8 +17,8 @@ import cv2
 import numpy as np
 
 from schemas.estimate import EstimateResult
-from worker.images import FloatImage, encode_png, to_display, to_grey
-from worker.photometry import reference_on_render_scale
+from worker.engine.images import FloatImage, encode_png, to_display, to_grey
+from worker.engine.photometry import reference_on_render_scale
 from worker.session import RenderedView
 
 #: Artifact names, in display order.

@@ -401,8 +401,8 @@ def run_sensor_comparison(args: argparse.Namespace) -> int:
 
     from worker.benchsensor import compare
     from worker.demosat import demo_satellite_path
+    from worker.engine.meshes import load_model
     from worker.entry import init_renderer_backend
-    from worker.meshes import load_model
 
     variant = init_renderer_backend()
     rows = compare(load_model(demo_satellite_path(args.output / "models")))

@@ -27,9 +27,9 @@ import numpy as np
 from schemas.camera import Camera
 from schemas.estimate import EstimateResult
 from schemas.options import EstimateOptions
-from worker.meshes import LoadedModel
-from worker.metrics import rotation_error_deg, speed_score, translation_error
-from worker.posemath import pose_from_schema
+from worker.engine.meshes import LoadedModel
+from worker.engine.metrics import rotation_error_deg, speed_score, translation_error
+from worker.engine.posemath import pose_from_schema
 from worker.synth import Case, CaseSpec, make_case
 
 log = logging.getLogger(__name__)
@@ -192,7 +192,7 @@ def build_case(task: CaseTask, model: LoadedModel) -> tuple[Case, int]:
 
 def run_case(task: CaseTask, on_record: RecordCallback | None = None) -> CaseOutcome:
     """Render the case of ``task`` and run every method on it (warming each method up once)."""
-    from worker.meshes import load_model
+    from worker.engine.meshes import load_model
 
     model = load_model(task.model_path)
     case, est_seed = build_case(task, model)
@@ -217,8 +217,8 @@ def warm_up(
     model: LoadedModel, model_path: str, reference: np.ndarray, case: Case, spec: MethodSpec
 ) -> dict[str, Any]:
     """One short untimed estimate, so scene builds and first-call costs stay out of the timings."""
+    from worker.engine.exceptions import ProxposeError
     from worker.estimator import estimate
-    from worker.exceptions import ProxposeError
 
     request = case.request.model_copy(
         update={"options": spec.options(max_iterations=WARMUP_ITERATIONS)}
@@ -261,8 +261,8 @@ def run_method(
     fields: dict[str, Any],
 ) -> dict[str, Any]:
     """One timed estimate; an engine error (or a crash) is recorded as a failed case."""
+    from worker.engine.exceptions import ProxposeError
     from worker.estimator import estimate
-    from worker.exceptions import ProxposeError
 
     seed = spec.overrides.get("seed", est_seed)
     request = case.request.model_copy(update={"options": spec.options(seed=seed)})

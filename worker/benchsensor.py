@@ -14,10 +14,10 @@ from typing import Any
 
 import numpy as np
 
-from worker.camera import PinholeCamera
-from worker.meshes import LoadedModel
-from worker.posemath import apply_increment, rotvec_to_matrix
-from worker.renderer import (
+from worker.engine.camera import PinholeCamera
+from worker.engine.meshes import LoadedModel
+from worker.engine.posemath import apply_increment, rotvec_to_matrix
+from worker.engine.renderer import (
     CV_FROM_MI,
     LightingSpec,
     Renderer,

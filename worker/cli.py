@@ -181,7 +181,7 @@ def main(argv: list[str] | None = None) -> int:
         level=logging.INFO if args.verbose else logging.WARNING,
         format="%(asctime)s %(levelname)s %(name)s: %(message)s",
     )
-    from worker.exceptions import EstimationCancelled, InvalidInputError, ProxposeError
+    from worker.engine.exceptions import EstimationCancelled, InvalidInputError, ProxposeError
 
     try:
         return int(args.handler(args))

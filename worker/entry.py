@@ -12,13 +12,13 @@ from schemas.estimate import EstimateRequest, EstimateResult
 from schemas.render import RenderRequest
 from schemas.settings import get_settings
 from worker.artifacts import make_artifacts
-from worker.camera import PinholeCamera
-from worker.exceptions import EmptyRenderError
-from worker.images import MAX_IMAGE_PIXELS, decode_image, encode_png, to_display
-from worker.meshes import load_model
-from worker.posemath import pose_from_schema
+from worker.engine.camera import PinholeCamera
+from worker.engine.exceptions import EmptyRenderError
+from worker.engine.images import MAX_IMAGE_PIXELS, decode_image, encode_png, to_display
+from worker.engine.meshes import load_model
+from worker.engine.posemath import pose_from_schema
+from worker.engine.variant import choose_variant
 from worker.session import CancelCheck, ProgressCallback
-from worker.variant import choose_variant
 
 log = logging.getLogger(__name__)
 

@@ -17,22 +17,22 @@ import numpy as np
 
 from schemas.estimate import Covariance, Errors, EstimateRequest, EstimateResult, StopReason
 from schemas.options import EstimateOptions
-from worker.camera import PinholeCamera
 from worker.coarse import (
     COARSE_HANDOVER_STEP,
     COARSE_MAX_ITERATIONS,
     run_moment_alignment,
     run_pnp_stage,
 )
-from worker.exceptions import EmptyRenderError, TooFewFeaturesError
-from worker.images import FloatImage, check_size, to_grey
+from worker.engine.camera import PinholeCamera
+from worker.engine.exceptions import EmptyRenderError, TooFewFeaturesError
+from worker.engine.images import FloatImage, check_size, to_grey
+from worker.engine.meshes import LoadedModel
+from worker.engine.metrics import rotation_error_deg, speed_score, translation_error
+from worker.engine.photometry import alignment_score
+from worker.engine.posemath import pose_from_schema, pose_to_schema
+from worker.engine.renderer import LightingSpec, Renderer
 from worker.lm import covariance
-from worker.meshes import LoadedModel
-from worker.metrics import rotation_error_deg, speed_score, translation_error
-from worker.photometry import alignment_score
-from worker.posemath import pose_from_schema, pose_to_schema
 from worker.refine import run_lm_stage
-from worker.renderer import LightingSpec, Renderer
 from worker.session import CancelCheck, ProgressCallback, RenderedView, Session
 
 #: Refinement passes added after one that ended 'slow' (see worker.refine).

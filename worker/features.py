@@ -1,6 +1,6 @@
 """Sparse features: descriptor matching, corners, KLT tracking and their weighting.
 
-Images arrive already on one photometric scale (see :mod:`worker.photometry`).
+Images arrive already on one photometric scale (see :mod:`worker.engine.photometry`).
 """
 
 from __future__ import annotations

@@ -11,8 +11,8 @@ from __future__ import annotations
 import numpy as np
 from numpy.typing import NDArray
 
-from worker.exceptions import TooFewFeaturesError
-from worker.posemath import axis_angle_to_matrix, matrix_to_gibbs
+from worker.engine.exceptions import TooFewFeaturesError
+from worker.engine.posemath import axis_angle_to_matrix, matrix_to_gibbs
 
 Array = NDArray[np.float64]
 

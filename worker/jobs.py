@@ -32,8 +32,8 @@ from schemas.render import RenderRequest
 from schemas.settings import Settings, get_settings
 from service.logs import log_context
 from service.store import JobRecord, JobStats, JobStore, Keys, Leases, ModelStore, Reaper
+from worker.engine.exceptions import EstimationCancelled, ProxposeError
 from worker.entry import render_png, run_estimate
-from worker.exceptions import EstimationCancelled, ProxposeError
 
 log = logging.getLogger(__name__)
 
@@ -101,7 +101,7 @@ def fetch_model_file(models: ModelStore, model_id: str, data_dir: Path) -> Path:
 def register_demo_model(r: redis.Redis, keys: Keys, data_dir: Path) -> ModelPublic:
     """Register the demo satellite as 'demo-sat' (generated on first use; idempotent)."""
     from worker.demosat import DEMO_MODEL_ID, DEMO_MODEL_NAME, demo_satellite_path
-    from worker.meshes import load_model
+    from worker.engine.meshes import load_model
 
     path = demo_satellite_path(Path(data_dir))
     data = path.read_bytes()

@@ -8,15 +8,15 @@ import numpy as np
 from numpy.typing import NDArray
 
 from worker.edges import normal_shift
-from worker.exceptions import TooFewFeaturesError
+from worker.engine.exceptions import TooFewFeaturesError
+from worker.engine.photometry import smooth, to_u8
+from worker.engine.posemath import apply_increment, matrix_to_axis_angle
 from worker.features import track
 from worker.jacobian import (
     learn_jacobian,
     learn_jacobian_per_feature,
     sample_perturbations,
 )
-from worker.photometry import smooth, to_u8
-from worker.posemath import apply_increment, matrix_to_axis_angle
 from worker.session import Session
 
 Array = NDArray[np.float64]

@@ -14,8 +14,8 @@ import cv2
 import numpy as np
 from numpy.typing import NDArray
 
-from worker.camera import PinholeCamera
-from worker.posemath import matrix_to_rotvec, rotvec_to_matrix
+from worker.engine.camera import PinholeCamera
+from worker.engine.posemath import matrix_to_rotvec, rotvec_to_matrix
 
 Array = NDArray[np.float64]
 

@@ -18,7 +18,8 @@ import numpy as np
 from numpy.typing import NDArray
 
 from schemas.estimate import Stage
-from worker.exceptions import TooFewFeaturesError
+from worker.engine.exceptions import TooFewFeaturesError
+from worker.engine.posemath import apply_increment, step_norm
 from worker.learning import (
     LearnedJacobian,
     analytic_jacobian,
@@ -32,7 +33,6 @@ from worker.lm import (
     ransac_increment,
     weighted_cost,
 )
-from worker.posemath import apply_increment, step_norm
 from worker.session import RenderedView, Session
 from worker.sunfit import SunTilt
 from worker.tracked import Features, MatchedFeatures, TrackedFeatures

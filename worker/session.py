@@ -17,14 +17,14 @@ from numpy.typing import NDArray
 
 from schemas.estimate import IterationRecord, Stage
 from schemas.options import EstimateOptions
-from worker.camera import PinholeCamera
-from worker.exceptions import EstimationCancelled
+from worker.engine.camera import PinholeCamera
+from worker.engine.exceptions import EstimationCancelled
+from worker.engine.images import FloatImage
+from worker.engine.metrics import rotation_error_deg, translation_error
+from worker.engine.photometry import render_to_grey, to_u8
+from worker.engine.posemath import pose_to_schema
+from worker.engine.renderer import LightingSpec, Renderer
 from worker.features import Described, describe
-from worker.images import FloatImage
-from worker.metrics import rotation_error_deg, translation_error
-from worker.photometry import render_to_grey, to_u8
-from worker.posemath import pose_to_schema
-from worker.renderer import LightingSpec, Renderer
 
 Array = NDArray[np.float64]
 ProgressCallback = Callable[[IterationRecord, int], None]

@@ -22,7 +22,7 @@ from dataclasses import replace
 import numpy as np
 from numpy.typing import NDArray
 
-from worker.renderer import LightingSpec
+from worker.engine.renderer import LightingSpec
 from worker.session import RenderedView, Session
 
 Array = NDArray[np.float64]

@@ -19,10 +19,10 @@ from schemas.estimate import EstimateRequest
 from schemas.lighting import Lighting
 from schemas.options import EstimateOptions
 from schemas.pose import Pose
-from worker.camera import PinholeCamera
-from worker.meshes import LoadedModel
-from worker.posemath import axis_angle_to_matrix, matrix_to_quaternion
-from worker.renderer import LightingSpec, Renderer
+from worker.engine.camera import PinholeCamera
+from worker.engine.meshes import LoadedModel
+from worker.engine.posemath import axis_angle_to_matrix, matrix_to_quaternion
+from worker.engine.renderer import LightingSpec, Renderer
 
 Array = NDArray[np.float64]
 
@@ -51,7 +51,7 @@ class Case:
 
 def random_rotation(rng: np.random.Generator) -> Array:
     q = rng.normal(size=4)
-    from worker.posemath import quaternion_to_matrix
+    from worker.engine.posemath import quaternion_to_matrix
 
     return quaternion_to_matrix(q / np.linalg.norm(q))
 

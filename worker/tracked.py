@@ -20,9 +20,8 @@ import numpy as np
 from numpy.typing import NDArray
 
 from worker.edges import detect_edge_points, normal_shift
-from worker.features import detect_corners, match_features, structure_whitening, track
-from worker.images import srgb_decode, srgb_encode, to_grey
-from worker.photometry import (
+from worker.engine.images import srgb_decode, srgb_encode, to_grey
+from worker.engine.photometry import (
     content_mask,
     contrast_scale,
     local_normalise,
@@ -32,6 +31,7 @@ from worker.photometry import (
     reference_on_render_scale,
     relative_blur,
 )
+from worker.features import detect_corners, match_features, structure_whitening, track
 from worker.session import RenderedView, Session
 
 Array = NDArray[np.float64]

@@ -13,7 +13,7 @@ import numpy as np
 from numpy.typing import NDArray
 from PIL import Image
 
-from worker.exceptions import ImageDecodeError, ImageSizeMismatchError, ImageTooLargeError
+from worker.engine.exceptions import ImageDecodeError, ImageSizeMismatchError, ImageTooLargeError
 
 FloatImage = NDArray[np.float32]
 

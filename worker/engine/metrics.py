@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 from numpy.typing import ArrayLike
 
-from worker.posemath import matrix_to_quaternion
+from worker.engine.posemath import matrix_to_quaternion
 
 
 def rotation_error_deg(R_true: ArrayLike, R_est: ArrayLike) -> float:

@@ -18,8 +18,8 @@ from pathlib import Path
 import numpy as np
 from numpy.typing import NDArray
 
-from worker.exceptions import ModelLoadError, ModelTooLargeError
-from worker.images import srgb_decode
+from worker.engine.exceptions import ModelLoadError, ModelTooLargeError
+from worker.engine.images import srgb_decode
 
 log = logging.getLogger(__name__)
 

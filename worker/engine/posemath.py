@@ -15,7 +15,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from schemas.pose import GIBBS_NORM_MAX, Pose, PoseOut
-from worker.exceptions import InvalidPoseError
+from worker.engine.exceptions import InvalidPoseError
 
 Array = NDArray[np.float64]
 

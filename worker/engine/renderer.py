@@ -16,9 +16,9 @@ from dataclasses import dataclass, field
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from worker.camera import PinholeCamera, RenderPlan, plan_render, warp_to_target
-from worker.exceptions import RenderError
-from worker.meshes import LoadedModel, MeshPart
+from worker.engine.camera import PinholeCamera, RenderPlan, plan_render, warp_to_target
+from worker.engine.exceptions import RenderError
+from worker.engine.meshes import LoadedModel, MeshPart
 
 Array = NDArray[np.float64]
 

@@ -15,7 +15,7 @@ import cv2
 import numpy as np
 from numpy.typing import NDArray
 
-from worker.images import FloatImage, srgb_decode, to_display, to_grey
+from worker.engine.images import FloatImage, srgb_decode, to_display, to_grey
 
 U8 = NDArray[np.uint8]
 
