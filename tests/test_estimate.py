@@ -1,4 +1,4 @@
-"""Full estimates on small renders (worker/estimator.py through worker/entry.py).
+"""Full estimates on small renders (worker/align/estimator.py through worker/entry.py).
 
 References come from worker.synth: rendered with another renderer setup (path tracing, Gaussian
 filter, gamma 2.2, exposure change, sun 3° off, noise, 8 bits) at a known pose; the initial guess
@@ -18,7 +18,7 @@ from schemas.estimate import EstimateRequest, EstimateResult, IterationRecord
 from schemas.options import EstimateOptions
 from schemas.pose import Pose
 from schemas.render import RenderRequest
-from worker.artifacts import ARTIFACT_NAMES
+from worker.align.artifacts import ARTIFACT_NAMES
 from worker.engine.exceptions import (
     EmptyRenderError,
     EstimationCancelled,
@@ -260,7 +260,7 @@ def test_same_request_gives_the_same_result(demo_path: Path, demo_case: Case) ->
 
 
 def test_target_out_of_view_is_an_empty_render(demo_model: LoadedModel, demo_case: Case) -> None:
-    from worker.estimator import estimate
+    from worker.align.estimator import estimate
 
     t = demo_case.request.initial_pose.t
     # Far to the side; far away (the target then covers much less than a pixel).
@@ -272,7 +272,7 @@ def test_target_out_of_view_is_an_empty_render(demo_model: LoadedModel, demo_cas
 
 
 def test_image_of_the_wrong_size(demo_model: LoadedModel, demo_case: Case) -> None:
-    from worker.estimator import estimate
+    from worker.align.estimator import estimate
 
     small = np.zeros((SIZE_PX, SIZE_PX - 1, 3), np.float32)
     with pytest.raises(ImageSizeMismatchError, match=f"{SIZE_PX - 1}×{SIZE_PX} px"):

@@ -1,15 +1,12 @@
-"""The learned Jacobian (worker/jacobian.py) and the LM machinery (worker/lm.py), on synthetic
-linear maps and on a pinhole projection of 3D points (METHOD.md, "Signs")."""
+"""The learned Jacobian (worker/align/jacobian.py) and the LM machinery (worker/align/lm.py), on
+synthetic linear maps and on a pinhole projection of 3D points (METHOD.md, "Signs")."""
 
 from __future__ import annotations
 
 import numpy as np
 import pytest
 
-from worker.engine.camera import PinholeCamera
-from worker.engine.metrics import rotation_error_deg
-from worker.engine.posemath import apply_increment, axis_angle_to_matrix, gibbs_to_matrix
-from worker.jacobian import (
+from worker.align.jacobian import (
     MAX_DESIGN_CONDITION,
     design_condition,
     learn_jacobian,
@@ -17,7 +14,10 @@ from worker.jacobian import (
     sample_cap_angles,
     sample_perturbations,
 )
-from worker.lm import covariance, irls_increment, lm_step, ransac_increment, weighted_cost
+from worker.align.lm import covariance, irls_increment, lm_step, ransac_increment, weighted_cost
+from worker.engine.camera import PinholeCamera
+from worker.engine.metrics import rotation_error_deg
+from worker.engine.posemath import apply_increment, axis_angle_to_matrix, gibbs_to_matrix
 
 HALF_WIDTH = np.array([0.05, 0.05, 0.2])  # translation box, scene units
 

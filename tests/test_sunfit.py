@@ -1,4 +1,4 @@
-"""The sun-tilt parameterisation (worker/sunfit.py); the fit itself is checked on a real
+"""The sun-tilt parameterisation (worker/align/sunfit.py); the fit itself is checked on a real
 estimate in test_estimate.py (test_default_estimate_fits_the_sun)."""
 
 from __future__ import annotations
@@ -8,8 +8,8 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 
+from worker.align.sunfit import MAX_TILT_DEG, PRIOR_PX_PER_RAD, SunTilt, tangent_basis
 from worker.engine.renderer import LightingSpec
-from worker.sunfit import MAX_TILT_DEG, PRIOR_PX_PER_RAD, SunTilt, tangent_basis
 
 
 class _Renderer:

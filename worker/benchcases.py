@@ -217,8 +217,8 @@ def warm_up(
     model: LoadedModel, model_path: str, reference: np.ndarray, case: Case, spec: MethodSpec
 ) -> dict[str, Any]:
     """One short untimed estimate, so scene builds and first-call costs stay out of the timings."""
+    from worker.align.estimator import estimate
     from worker.engine.exceptions import ProxposeError
-    from worker.estimator import estimate
 
     request = case.request.model_copy(
         update={"options": spec.options(max_iterations=WARMUP_ITERATIONS)}
@@ -261,8 +261,8 @@ def run_method(
     fields: dict[str, Any],
 ) -> dict[str, Any]:
     """One timed estimate; an engine error (or a crash) is recorded as a failed case."""
+    from worker.align.estimator import estimate
     from worker.engine.exceptions import ProxposeError
-    from worker.estimator import estimate
 
     seed = spec.overrides.get("seed", est_seed)
     request = case.request.model_copy(update={"options": spec.options(seed=seed)})

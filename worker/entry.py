@@ -11,14 +11,14 @@ from pathlib import Path
 from schemas.estimate import EstimateRequest, EstimateResult
 from schemas.render import RenderRequest
 from schemas.settings import get_settings
-from worker.artifacts import make_artifacts
+from worker.align.artifacts import make_artifacts
+from worker.align.session import CancelCheck, ProgressCallback
 from worker.engine.camera import PinholeCamera
 from worker.engine.exceptions import EmptyRenderError
 from worker.engine.images import MAX_IMAGE_PIXELS, decode_image, encode_png, to_display
 from worker.engine.meshes import load_model
 from worker.engine.posemath import pose_from_schema
 from worker.engine.variant import choose_variant
-from worker.session import CancelCheck, ProgressCallback
 
 log = logging.getLogger(__name__)
 
@@ -39,7 +39,7 @@ def run_estimate(
 ) -> tuple[EstimateResult, dict[str, bytes]]:
     """Estimate the pose; returns the result (artifact names filled in) and the PNG artifacts."""
     init_renderer_backend()
-    from worker.estimator import estimate
+    from worker.align.estimator import estimate
 
     reference = decode_image(image, MAX_IMAGE_PIXELS)
     model = load_model(model_path)
@@ -54,7 +54,7 @@ def run_estimate(
 def render_png(model_path: str | Path, request: RenderRequest) -> bytes:
     """One render of the model at the request's pose, as an 8-bit sRGB PNG."""
     init_renderer_backend()
-    from worker.estimator import get_renderer, lighting_spec, texture_level
+    from worker.align.estimator import get_renderer, lighting_spec, texture_level
 
     model = load_model(model_path)
     camera = PinholeCamera.from_schema(request.camera)

@@ -22,8 +22,8 @@ from dataclasses import replace
 import numpy as np
 from numpy.typing import NDArray
 
+from worker.align.session import RenderedView, Session
 from worker.engine.renderer import LightingSpec
-from worker.session import RenderedView, Session
 
 Array = NDArray[np.float64]
 #: ``Features.measure``: positions (k, 2) of the features in a render, and which were found.

@@ -5,7 +5,7 @@ default: one feature set for the whole stage, so the Jacobian can be reused whil
 little) or descriptor matches re-made at each new pose ('matches', the paper). A trial pose is
 judged on the same features as the current one: its render is measured for the features the
 current cost used, and only then compared. With ``options.fit_sun`` the refinement also solves
-for a tilt of the sun (:mod:`worker.sunfit`): two more columns of the Jacobian, moved by the
+for a tilt of the sun (:mod:`worker.align.sunfit`): two more columns of the Jacobian, moved by the
 same steps and undone with a rejected one.
 """
 
@@ -18,24 +18,24 @@ import numpy as np
 from numpy.typing import NDArray
 
 from schemas.estimate import Stage
-from worker.engine.exceptions import TooFewFeaturesError
-from worker.engine.posemath import apply_increment, step_norm
-from worker.learning import (
+from worker.align.learning import (
     LearnedJacobian,
     analytic_jacobian,
     learn_at_pose,
     perturbation_sizes,
 )
-from worker.lm import (
+from worker.align.lm import (
     feature_norms,
     irls_increment,
     lm_step,
     ransac_increment,
     weighted_cost,
 )
-from worker.session import RenderedView, Session
-from worker.sunfit import SunTilt
-from worker.tracked import Features, MatchedFeatures, TrackedFeatures
+from worker.align.session import RenderedView, Session
+from worker.align.sunfit import SunTilt
+from worker.align.tracked import Features, MatchedFeatures, TrackedFeatures
+from worker.engine.exceptions import TooFewFeaturesError
+from worker.engine.posemath import apply_increment, step_norm
 
 Array = NDArray[np.float64]
 Outcome = Literal[
@@ -67,7 +67,7 @@ class _State:
     learned: LearnedJacobian | None = None
     learned_at: RenderedView | None = None  # the view whose pose the Jacobian was learned at
     inliers: NDArray[np.bool_] | None = None  # pose-consistent features (RANSAC)
-    sun_J: Array | None = None  # (2k, 2) px per radian of sun tilt (see worker.sunfit)
+    sun_J: Array | None = None  # (2k, 2) px per radian of sun tilt (see worker.align.sunfit)
 
 
 def _rows(mask: NDArray[np.bool_]) -> NDArray[np.bool_]:

@@ -19,7 +19,9 @@ import cv2
 import numpy as np
 from numpy.typing import NDArray
 
-from worker.edges import detect_edge_points, normal_shift
+from worker.align.edges import detect_edge_points, normal_shift
+from worker.align.features import detect_corners, match_features, structure_whitening, track
+from worker.align.session import RenderedView, Session
 from worker.engine.images import srgb_decode, srgb_encode, to_grey
 from worker.engine.photometry import (
     content_mask,
@@ -31,8 +33,6 @@ from worker.engine.photometry import (
     reference_on_render_scale,
     relative_blur,
 )
-from worker.features import detect_corners, match_features, structure_whitening, track
-from worker.session import RenderedView, Session
 
 Array = NDArray[np.float64]
 

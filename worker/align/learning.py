@@ -7,17 +7,17 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
-from worker.edges import normal_shift
-from worker.engine.exceptions import TooFewFeaturesError
-from worker.engine.photometry import smooth, to_u8
-from worker.engine.posemath import apply_increment, matrix_to_axis_angle
-from worker.features import track
-from worker.jacobian import (
+from worker.align.edges import normal_shift
+from worker.align.features import track
+from worker.align.jacobian import (
     learn_jacobian,
     learn_jacobian_per_feature,
     sample_perturbations,
 )
-from worker.session import Session
+from worker.align.session import Session
+from worker.engine.exceptions import TooFewFeaturesError
+from worker.engine.photometry import smooth, to_u8
+from worker.engine.posemath import apply_increment, matrix_to_axis_angle
 
 Array = NDArray[np.float64]
 

@@ -17,9 +17,9 @@ import cv2
 import numpy as np
 
 from schemas.estimate import EstimateResult
+from worker.align.session import RenderedView
 from worker.engine.images import FloatImage, encode_png, to_display, to_grey
 from worker.engine.photometry import reference_on_render_scale
-from worker.session import RenderedView
 
 #: Artifact names, in display order.
 ARTIFACT_NAMES = (

@@ -1,7 +1,7 @@
 """State of one estimate: the current pose, the renderer, counters, history and callbacks.
 
-The stages (``worker.coarse``, ``worker.refine``) read and move the pose through a Session;
-it records every iteration in the result's history and calls the progress callback.
+The stages (``worker.align.coarse``, ``worker.align.refine``) read and move the pose through a
+Session; it records every iteration in the result's history and calls the progress callback.
 """
 
 from __future__ import annotations
@@ -17,6 +17,7 @@ from numpy.typing import NDArray
 
 from schemas.estimate import IterationRecord, Stage
 from schemas.options import EstimateOptions
+from worker.align.features import Described, describe
 from worker.engine.camera import PinholeCamera
 from worker.engine.exceptions import EstimationCancelled
 from worker.engine.images import FloatImage
@@ -24,7 +25,6 @@ from worker.engine.metrics import rotation_error_deg, translation_error
 from worker.engine.photometry import render_to_grey, to_u8
 from worker.engine.posemath import pose_to_schema
 from worker.engine.renderer import LightingSpec, Renderer
-from worker.features import Described, describe
 
 Array = NDArray[np.float64]
 ProgressCallback = Callable[[IterationRecord, int], None]
@@ -60,7 +60,7 @@ class Session:
     #: whitened rows, whitened residuals, weights, and the features' image positions (k, 2).
     fit: tuple[Array, Array, Array, Array] | None = None
     rng: np.random.Generator = field(default_factory=np.random.default_rng)
-    #: The request's lighting (a fitted sun changes the renderer's, see worker.sunfit).
+    #: The request's lighting (a fitted sun changes the renderer's, see worker.align.sunfit).
     requested_lighting: LightingSpec = field(init=False)
     _renders_at_last_record: int = 0
     _ref_u8: NDArray[np.uint8] | None = None

@@ -17,12 +17,15 @@ import numpy as np
 
 from schemas.estimate import Covariance, Errors, EstimateRequest, EstimateResult, StopReason
 from schemas.options import EstimateOptions
-from worker.coarse import (
+from worker.align.coarse import (
     COARSE_HANDOVER_STEP,
     COARSE_MAX_ITERATIONS,
     run_moment_alignment,
     run_pnp_stage,
 )
+from worker.align.lm import covariance
+from worker.align.refine import run_lm_stage
+from worker.align.session import CancelCheck, ProgressCallback, RenderedView, Session
 from worker.engine.camera import PinholeCamera
 from worker.engine.exceptions import EmptyRenderError, TooFewFeaturesError
 from worker.engine.images import FloatImage, check_size, to_grey
@@ -31,11 +34,8 @@ from worker.engine.metrics import rotation_error_deg, speed_score, translation_e
 from worker.engine.photometry import alignment_score
 from worker.engine.posemath import pose_from_schema, pose_to_schema
 from worker.engine.renderer import LightingSpec, Renderer
-from worker.lm import covariance
-from worker.refine import run_lm_stage
-from worker.session import CancelCheck, ProgressCallback, RenderedView, Session
 
-#: Refinement passes added after one that ended 'slow' (see worker.refine).
+#: Refinement passes added after one that ended 'slow' (see worker.align.refine).
 MAX_EXTRA_PASSES = 2
 #: Renderers kept per process (scene build and kernel tracing are paid once per entry).
 RENDERER_CACHE_SIZE = 3

@@ -13,12 +13,12 @@ import numpy as np
 from numpy.typing import NDArray
 
 from schemas.estimate import StopReason
+from worker.align.features import match_features
+from worker.align.pnp import PnPResult, solve_pnp
+from worker.align.session import RenderedView, Session
 from worker.engine.images import FloatImage
 from worker.engine.photometry import alignment_score, content_mask, normalise_pair
 from worker.engine.posemath import axis_angle_to_matrix, increment_between, step_norm
-from worker.features import match_features
-from worker.pnp import PnPResult, solve_pnp
-from worker.session import RenderedView, Session
 
 #: Hand over to the refinement once a PnP step is below this ‖δp‖ (≈ 0.1°, 0.2 % of range):
 #: PnP on ray-cast points jitters at about that level.
