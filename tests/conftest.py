@@ -134,7 +134,7 @@ RENDER_SCRIPT = """
 import json, sys
 from pathlib import Path
 from schemas import RenderRequest
-from worker.demosat import demo_satellite_path
+from worker.demo.satellite import demo_satellite_path
 from worker.entry import render_png
 spec = json.loads(sys.argv[1])
 model = demo_satellite_path(Path(spec["data_dir"]))

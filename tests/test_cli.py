@@ -47,7 +47,7 @@ def case_dir(tmp_path_factory: pytest.TempPathFactory, variant: str) -> Path:
     """The demo satellite, a reference image and REQUEST.json / POSE.json written as a user
     would (initial guess 3° and 3 % off the truth, which is given as ground_truth)."""
     from schemas.camera import Camera
-    from worker.demosat import demo_satellite_path
+    from worker.demo.satellite import demo_satellite_path
     from worker.engine.meshes import load_model
     from worker.synth import CaseSpec, make_case
 

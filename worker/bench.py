@@ -400,7 +400,7 @@ def run_sensor_comparison(args: argparse.Namespace) -> int:
     import json
 
     from worker.benchsensor import compare
-    from worker.demosat import demo_satellite_path
+    from worker.demo.satellite import demo_satellite_path
     from worker.engine.meshes import load_model
     from worker.entry import init_renderer_backend
 

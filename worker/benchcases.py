@@ -126,7 +126,7 @@ def resolve_models(
     skipped: list[str] = []
     for name in names:
         if name == DEMO_MODEL:
-            from worker.demosat import demo_satellite_path
+            from worker.demo.satellite import demo_satellite_path
 
             found.append((name, demo_satellite_path(data_dir).resolve()))
             continue

@@ -17,7 +17,7 @@ from schemas.models import ModelPublic
 from service.store.access import Principal
 from service.store.keys import Keys
 
-#: Id of the built-in demo satellite (the same as ``worker.demosat.DEMO_MODEL_ID``).
+#: Id of the built-in demo satellite (the same as ``worker.demo.satellite.DEMO_MODEL_ID``).
 DEMO_MODEL_ID = "demo-sat"
 
 

@@ -19,8 +19,8 @@ import trimesh
 from numpy.typing import NDArray
 from trimesh.exchange.gltf import export_glb
 
-from worker.demosat_geometry import Parts, box, cylinder, revolve, textured_mesh, tf
-from worker.demosat_textures import dish_texture, mli_texture, part_texture, solar_texture
+from worker.demo.geometry import Parts, box, cylinder, revolve, textured_mesh, tf
+from worker.demo.textures import dish_texture, mli_texture, part_texture, solar_texture
 
 DEMO_MODEL_ID = "demo-sat"
 DEMO_MODEL_NAME = "Demo satellite (procedural)"

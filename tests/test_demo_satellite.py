@@ -1,4 +1,4 @@
-"""Tests of the procedural demo satellite (worker/demosat.py)."""
+"""Tests of the procedural demo satellite (worker/demo/satellite.py)."""
 
 from __future__ import annotations
 
@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 import trimesh
 
-from worker.demosat import (
+from worker.demo.satellite import (
     DEMO_MODEL_ID,
     DEMO_MODEL_NAME,
     build_demo_satellite,
@@ -52,7 +52,7 @@ def test_glb_is_byte_identical_across_writes(glb: pathlib.Path, tmp_path: pathli
 def test_glb_is_byte_identical_across_processes(glb: pathlib.Path) -> None:
     # a fresh interpreter with another hash seed catches set/dict-order dependence in the export
     code = (
-        "import hashlib, trimesh; from worker.demosat import build_demo_satellite; "
+        "import hashlib, trimesh; from worker.demo.satellite import build_demo_satellite; "
         "data = trimesh.exchange.gltf.export_glb(build_demo_satellite(0), include_normals=True); "
         "print(hashlib.sha256(data).hexdigest())"
     )

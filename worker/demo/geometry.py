@@ -13,7 +13,7 @@ from PIL import Image
 from trimesh.visual import TextureVisuals
 from trimesh.visual.material import PBRMaterial
 
-from worker.demosat_textures import Rect
+from worker.demo.textures import Rect
 
 Parts = tuple[NDArray, NDArray, NDArray, NDArray]  # vertices, faces, normals, uv
 
