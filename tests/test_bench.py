@@ -14,14 +14,14 @@ import cv2
 import numpy as np
 import pytest
 
-from worker.benchcases import (
+from worker.bench.cases import (
     BenchSetupError,
     band_edges,
     case_seeds,
     draw_offset,
     parse_method,
 )
-from worker.benchreport import is_success, markdown, method_stats, summarize
+from worker.bench.report import is_success, markdown, method_stats, summarize
 
 REPO = Path(__file__).resolve().parents[1]
 METHODS = ["default", "fast", "paper", "pnp"]
@@ -182,7 +182,7 @@ def test_markdown_of_an_empty_run() -> None:
 # -- the command ------------------------------------------------------------------------------
 def test_bench_module_imports_nothing_heavy() -> None:
     code = (
-        "import sys, worker.bench; "
+        "import sys, worker.bench.cli; "
         "print(sorted(m for m in ('numpy', 'cv2', 'mitsuba', 'drjit') if m in sys.modules))"
     )
     out = subprocess.run([sys.executable, "-c", code], cwd=REPO, capture_output=True, text=True)

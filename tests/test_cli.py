@@ -47,9 +47,9 @@ def case_dir(tmp_path_factory: pytest.TempPathFactory, variant: str) -> Path:
     """The demo satellite, a reference image and REQUEST.json / POSE.json written as a user
     would (initial guess 3° and 3 % off the truth, which is given as ground_truth)."""
     from schemas.camera import Camera
+    from worker.bench.synth import CaseSpec, make_case
     from worker.demo.satellite import demo_satellite_path
     from worker.engine.meshes import load_model
-    from worker.synth import CaseSpec, make_case
 
     d = tmp_path_factory.mktemp("cli")
     model_path = demo_satellite_path(d)

@@ -1,8 +1,9 @@
 """Full estimates on small renders (worker/align/estimator.py through worker/entry.py).
 
-References come from worker.synth: rendered with another renderer setup (path tracing, Gaussian
-filter, gamma 2.2, exposure change, sun 3° off, noise, 8 bits) at a known pose; the initial guess
-is 3° and 3 % of the range away. One estimate per method is shared by the tests that read it.
+References come from worker.bench.synth: rendered with another renderer setup (path tracing,
+Gaussian filter, gamma 2.2, exposure change, sun 3° off, noise, 8 bits) at a known pose; the
+initial guess is 3° and 3 % of the range away. One estimate per method is shared by the tests
+that read it.
 """
 
 from __future__ import annotations
@@ -19,6 +20,7 @@ from schemas.options import EstimateOptions
 from schemas.pose import Pose
 from schemas.render import RenderRequest
 from worker.align.artifacts import ARTIFACT_NAMES
+from worker.bench.synth import Case, CaseSpec, make_case
 from worker.engine.exceptions import (
     EmptyRenderError,
     EstimationCancelled,
@@ -27,7 +29,6 @@ from worker.engine.exceptions import (
 )
 from worker.engine.images import decode_image, encode_png
 from worker.engine.meshes import LoadedModel, load_model
-from worker.synth import Case, CaseSpec, make_case
 
 pytestmark = pytest.mark.slow
 

@@ -38,7 +38,7 @@ ENGINE_MODULES = [
     "worker.align.coarse",
     "worker.align.refine",
     "worker.align.estimator",
-    "worker.synth",
+    "worker.bench.synth",
     "worker.align.artifacts",
     "worker.entry",
     "worker.demo.satellite",

@@ -28,7 +28,7 @@ _EXTRA_COMMANDS: list[tuple[str, str, str]] = [
     # (name, module, help); the module defines add_arguments(parser) and run(args) -> int
     ("serve", "service.serve", "run the API, an embedded Redis and a worker"),
     ("worker", "worker.runner", "run an RQ worker against PROXPOSE_REDIS_URL"),
-    ("bench", "worker.bench", "accuracy and speed against the baselines"),
+    ("bench", "worker.bench.cli", "accuracy and speed against the baselines"),
     ("loadtest", "service.loadtest", "load-test a running service"),
 ]
 

@@ -4,29 +4,26 @@
                    [--methods default,fast,paper,pnp] [--bands 3,10,20] [--cases N] [--size PX]
                    [--seed S] [--output DIR] [--jobs N]
 
-Every method runs on the same seeded cases (:mod:`worker.benchcases`), in this process unless
+Every method runs on the same seeded cases (:mod:`worker.bench.cases`), in this process unless
 ``--jobs`` > 1; DIR/bench.json, DIR/bench.md and DIR/error_vs_offset.png are written by
-:mod:`worker.benchreport`. Only the standard library is imported at module level, because the
+:mod:`worker.bench.outputs`. Only the standard library is imported at module level, because the
 CLI imports this module to build its parser.
 """
 
 from __future__ import annotations
 
 import argparse
-import json
-import math
 import os
-import shlex
-import subprocess
 import sys
 import time
 from dataclasses import asdict
-from datetime import UTC, datetime
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
+from worker.bench.outputs import environment, print_summary, write_outputs
+
 if TYPE_CHECKING:
-    from worker.benchcases import CaseOutcome, CaseTask
+    from worker.bench.cases import CaseOutcome, CaseTask
 
 ALL_MODELS = ["demo", "iss", "aura", "phobos"]
 #: Suite presets; an explicit --models/--cases/--size overrides the preset's value.
@@ -39,8 +36,7 @@ DEFAULT_METHODS = "default,fast,paper,pnp"
 DEFAULT_BANDS = "3,10,20"
 DEFAULT_OUTPUT = Path("bench-output")
 #: The public models' directory, relative to the repository (a sibling checkout).
-SHARED_MODELS_DIR = Path(__file__).resolve().parents[2] / "shared" / "models"
-JSON_FORMAT = "proxpose-bench/1"
+SHARED_MODELS_DIR = Path(__file__).resolve().parents[3] / "shared" / "models"
 EXIT_INTERRUPTED = 130
 
 
@@ -111,7 +107,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 def make_config(args: argparse.Namespace) -> dict[str, Any]:
     """The suite settings from the arguments (preset, then explicit values), checked."""
-    from worker.benchcases import BenchSetupError, band_edges, parse_method
+    from worker.bench.cases import BenchSetupError, band_edges, parse_method
 
     name = "quick" if args.quick else "full" if args.full else "small"
     preset = SUITES[name]
@@ -142,7 +138,7 @@ def make_tasks(
     config: dict[str, Any], models: list[tuple[str, Path]], output_dir: Path
 ) -> list[CaseTask]:
     """One task per (model, band, case index), in that order."""
-    from worker.benchcases import CaseTask, band_edges, parse_method
+    from worker.bench.cases import CaseTask, band_edges, parse_method
 
     methods = [parse_method(m) for m in config["methods"]]
     return [
@@ -186,7 +182,7 @@ class Progress:
         self.bar.set_postfix_str(f"{task.case_id}: rendering the reference")
 
     def record(self, record: dict[str, Any]) -> None:
-        from worker.benchreport import is_success
+        from worker.bench.report import is_success
 
         self.done += 1
         self.successes += is_success(record)
@@ -201,7 +197,7 @@ class Progress:
 
 def run_serial(tasks: list[CaseTask], progress: Progress, done: dict[int, CaseOutcome]) -> None:
     """Every case in this process, in order, into ``done`` (by task index)."""
-    from worker.benchcases import run_case
+    from worker.bench.cases import run_case
 
     for i, task in enumerate(tasks):
         progress.starting(task)
@@ -227,7 +223,7 @@ def run_parallel(
     import multiprocessing
     from concurrent.futures import ProcessPoolExecutor, as_completed
 
-    from worker.benchcases import run_case
+    from worker.bench.cases import run_case
 
     threads = max(1, (os.cpu_count() or 1) // jobs)
     ctx = multiprocessing.get_context("spawn")
@@ -243,108 +239,9 @@ def run_parallel(
             raise
 
 
-def _git(*args: str) -> str | None:
-    repo = Path(__file__).resolve().parents[1]
-    env = {**os.environ, "GIT_OPTIONAL_LOCKS": "0"}  # never take .git/index.lock
-    try:
-        out = subprocess.run(
-            ["git", *args], cwd=repo, env=env, capture_output=True, text=True, timeout=10
-        )
-    except (OSError, subprocess.SubprocessError):
-        return None
-    return out.stdout.strip() if out.returncode == 0 else None
-
-
-def _cpu_model() -> str:
-    import platform
-
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                return line.split(":", 1)[1].strip()
-    except OSError:
-        pass
-    return platform.processor() or platform.machine()
-
-
-def environment(variant: str) -> dict[str, Any]:
-    """Where and how the bench ran: command, machine, variant, versions, commit."""
-    import platform
-    from importlib.metadata import PackageNotFoundError, version
-
-    import drjit as dr
-
-    versions: dict[str, str | None] = {}
-    for pkg in ("proxpose", "numpy", "mitsuba", "drjit", "opencv-python-headless", "trimesh"):
-        try:
-            versions[pkg] = version(pkg)
-        except PackageNotFoundError:
-            versions[pkg] = None
-    dirty = _git("status", "--porcelain", "--untracked-files=no")
-    return {
-        "command": shlex.join(["proxpose", *sys.argv[1:]]),
-        "argv": sys.argv,
-        "started_at": datetime.now(UTC).isoformat(timespec="seconds"),
-        "variant": variant,
-        "drjit_threads": dr.thread_count(),
-        "cpu_model": _cpu_model(),
-        "cpu_count": os.cpu_count(),
-        "cpus_available": len(os.sched_getaffinity(0)),
-        "load_average_start": list(os.getloadavg()),
-        "python": platform.python_version(),
-        "platform": platform.platform(),
-        "versions": versions,
-        "git_commit": _git("rev-parse", "--short=12", "HEAD"),
-        "git_dirty": None if dirty is None else bool(dirty),
-    }
-
-
-def _clean(value: Any) -> Any:
-    """JSON-ready: numpy scalars to Python, non-finite floats to None."""
-    if isinstance(value, dict):
-        return {str(k): _clean(v) for k, v in value.items()}
-    if isinstance(value, list | tuple):
-        return [_clean(v) for v in value]
-    if hasattr(value, "item") and not isinstance(value, str):
-        value = value.item()
-    if isinstance(value, float) and not math.isfinite(value):
-        return None
-    return value
-
-
-def write_outputs(
-    output_dir: Path,
-    outcomes: list[CaseOutcome],
-    config: dict[str, Any],
-    env: dict[str, Any],
-    status: str,
-) -> dict[str, Any]:
-    """Write bench.json, bench.md and error_vs_offset.png; return the summary."""
-    from worker.benchreport import markdown, plot_error_vs_offset, summarize
-
-    records = [r for o in outcomes for r in o.records]
-    summary = summarize(records, config["methods"])
-    payload = {
-        "format": JSON_FORMAT,
-        "status": status,
-        "config": config,
-        "environment": env,
-        "summary": summary,
-        "warmups": [w for o in outcomes for w in o.warmups],
-        "cases": records,
-    }
-    output_dir.mkdir(parents=True, exist_ok=True)
-    text = json.dumps(_clean(payload), indent=1, ensure_ascii=False, allow_nan=False)
-    (output_dir / "bench.json").write_text(text + "\n")
-    note = "" if status == "complete" else f"**Partial results: the run was {status}.**\n\n"
-    (output_dir / "bench.md").write_text(note + markdown(summary, config, env))
-    plot_error_vs_offset(records, config["methods"], str(output_dir / "error_vs_offset.png"))
-    return summary
-
-
 def _case_conditions(config: dict[str, Any]) -> dict[str, Any]:
-    from worker.benchcases import CAMERA_FOV_DEG, bench_camera
-    from worker.synth import CaseSpec
+    from worker.bench.cases import CAMERA_FOV_DEG, bench_camera
+    from worker.bench.synth import CaseSpec
 
     spec = asdict(CaseSpec(0.0, 0.0))
     del spec["offset_deg"], spec["offset_frac"]
@@ -355,25 +252,10 @@ def _case_conditions(config: dict[str, Any]) -> dict[str, Any]:
     }
 
 
-def print_summary(summary: dict[str, Any], output_dir: Path) -> None:
-    """One line per band and method on stdout."""
-    for group in summary["by_band"]:
-        for method, s in group["methods"].items():
-            if not s["cases"]:
-                continue
-            print(
-                f"≤{group['group']:g}°  {method:<14} {s['successes']}/{s['cases']} ok  "
-                f"rot. median {s['rotation_deg_median']:.3g}°  "
-                f"transl. median {s['translation_pct_median']:.3g} %  "
-                f"{s['seconds_median']:.3g} s/estimate"
-            )
-    print(f"wrote {output_dir / 'bench.json'}, bench.md, error_vs_offset.png")
-
-
 def prepare(args: argparse.Namespace) -> tuple[dict[str, Any], list[tuple[str, Path]]]:
     """The checked suite settings and the models' paths (absent shared models skipped)."""
     from schemas.settings import get_settings
-    from worker.benchcases import BenchSetupError, resolve_models
+    from worker.bench.cases import BenchSetupError, resolve_models
     from worker.cli import BadInput
 
     try:
@@ -399,7 +281,7 @@ def run_sensor_comparison(args: argparse.Namespace) -> int:
     """``--sensor``: batch sensor vs separate renders on the demo satellite, printed + JSON."""
     import json
 
-    from worker.benchsensor import compare
+    from worker.bench.sensor import compare
     from worker.demo.satellite import demo_satellite_path
     from worker.engine.meshes import load_model
     from worker.entry import init_renderer_backend

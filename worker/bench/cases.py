@@ -1,6 +1,6 @@
 """Bench cases: the models, the seeded cases in offset bands, and one estimate per method.
 
-A case is one reference image (``worker.synth.make_case``: another renderer setup, noise,
+A case is one reference image (``worker.bench.synth.make_case``: another renderer setup, noise,
 exposure, a sun-direction error) with one initial guess; every method is run on the same case,
 so the comparison is paired. The initial offset of a case in band ``(lo, hi]`` is drawn
 uniformly in that interval, the rotation angle in degrees and the translation in percent of the
@@ -27,10 +27,10 @@ import numpy as np
 from schemas.camera import Camera
 from schemas.estimate import EstimateResult
 from schemas.options import EstimateOptions
+from worker.bench.synth import Case, CaseSpec, make_case
 from worker.engine.meshes import LoadedModel
 from worker.engine.metrics import rotation_error_deg, speed_score, translation_error
 from worker.engine.posemath import pose_from_schema
-from worker.synth import Case, CaseSpec, make_case
 
 log = logging.getLogger(__name__)
 
@@ -333,7 +333,7 @@ def save_case(task: CaseTask, case: Case, records: list[dict[str, Any]]) -> None
     With ``save_cases="failed"`` only cases some method did not solve are written; the
     records of the written methods get a ``reproduce`` command line.
     """
-    from worker.benchreport import is_success
+    from worker.bench.report import is_success
 
     chosen = [r for r in records if task.save_cases == "all" or not is_success(r)]
     if not chosen or task.output_dir is None:
