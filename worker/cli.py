@@ -27,7 +27,7 @@ Handler = Callable[[argparse.Namespace], int]
 _EXTRA_COMMANDS: list[tuple[str, str, str]] = [
     # (name, module, help); the module defines add_arguments(parser) and run(args) -> int
     ("serve", "service.serve", "run the API, an embedded Redis and a worker"),
-    ("worker", "worker.runner", "run an RQ worker against PROXPOSE_REDIS_URL"),
+    ("worker", "worker.jobs.runner", "run an RQ worker against PROXPOSE_REDIS_URL"),
     ("bench", "worker.bench.cli", "accuracy and speed against the baselines"),
     ("loadtest", "service.loadtest", "load-test a running service"),
 ]

@@ -1,6 +1,6 @@
 """The RQ side: the two queues, enqueueing by dotted name, removal, and live workers.
 
-Jobs are enqueued by name ("worker.jobs.run_estimate_job") so the API never imports the
+Jobs are enqueued by name ("worker.jobs.estimate.run_estimate_job") so the API never imports the
 engine; their arguments are plain strings, serialised as JSON (no pickle in Redis).
 
 An estimate is enqueued inside the same Redis transaction that creates (or requeues) its
@@ -21,8 +21,11 @@ from rq.serializers import JSONSerializer
 
 from service.store.keys import Keys
 
-ESTIMATE_JOB = "worker.jobs.run_estimate_job"
-RENDER_JOB = "worker.jobs.run_render_job"
+#: The RQ job functions, by dotted name (jobs enqueued under the names before the worker was
+#: split into packages, "worker.jobs.run_estimate_job" and "worker.jobs.run_render_job", still
+#: resolve: see worker/jobs/__init__.py).
+ESTIMATE_JOB = "worker.jobs.estimate.run_estimate_job"
+RENDER_JOB = "worker.jobs.render.run_render_job"
 #: How long RQ keeps its own record of a failed job (ours lives in the job hash), s.
 RQ_FAILURE_TTL_S = 24 * 3600
 #: RQ's own timeout of an estimate is this much longer than the job's: the job stops itself at

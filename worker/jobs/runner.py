@@ -60,7 +60,7 @@ def run(args: argparse.Namespace) -> int:
     from service.logs import configure_logging
     from service.store import Keys, Queues
     from worker.entry import init_renderer_backend
-    from worker.jobs import register_demo_model
+    from worker.jobs.models import register_demo_model
 
     settings = get_settings()
     configure_logging(settings.log_format, replace=True)  # not the CLI's text handler
@@ -93,7 +93,7 @@ def _worker_class() -> type[Any]:
     """RQ's SimpleWorker that tells the maintenance thread when it is running a job."""
     from rq import SimpleWorker
 
-    from worker.jobs import STOP_NOW
+    from worker.jobs.lease import STOP_NOW
 
     class ProxposeWorker(SimpleWorker):
         busy = threading.Event()
@@ -199,7 +199,7 @@ def _warm_up(data_dir: Path, demo: ModelPublic) -> None:
     """One tiny render of the demo model: loads it and compiles the renderer's kernels."""
     from schemas import Camera, Pose, RenderRequest
     from worker.entry import render_png
-    from worker.jobs import model_cache_path
+    from worker.jobs.models import model_cache_path
 
     t0 = time.monotonic()
     camera = Camera(width=64, height=64, fx=64.0, fy=64.0, cx=31.5, cy=31.5)

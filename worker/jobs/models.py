@@ -1,0 +1,91 @@
+"""The model files jobs need: a cache on the worker's disk by content hash, filled from Redis.
+
+A job reads a registered model's bytes from Redis once per worker and keeps them under
+``data_dir/cache/models/<sha256>.<format>``; the engine caches the loaded model per process.
+The built-in demo satellite is registered by every worker when it starts.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import os
+import tempfile
+from datetime import UTC, datetime
+from pathlib import Path
+
+import redis
+
+from schemas.models import ModelPublic
+from service.store import Keys, ModelStore
+from worker.engine.exceptions import ProxposeError
+
+
+class ModelNotFoundError(ProxposeError):
+    """The job names a model that is not (or no longer) registered."""
+
+    code = "model_not_found"
+
+
+def _write_atomic(path: Path, data: bytes) -> None:
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    try:
+        with os.fdopen(fd, "wb") as fh:
+            fh.write(data)
+        os.replace(tmp, path)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
+
+
+def model_cache_path(data_dir: Path, model: ModelPublic) -> Path:
+    """Where a worker keeps a model's file: by content hash, with the format's extension."""
+    return Path(data_dir) / "cache" / "models" / f"{model.sha256}.{model.format}"
+
+
+def fetch_model_file(models: ModelStore, model_id: str, data_dir: Path) -> Path:
+    """The local path of a registered model's file, downloaded from Redis on first use."""
+    meta = models.get(model_id)
+    if meta is None:
+        raise ModelNotFoundError(f"model '{model_id}' is not registered (was it deleted?)")
+    path = model_cache_path(data_dir, meta)
+    if path.is_file():
+        return path
+    data = models.data(model_id)
+    if data is None or hashlib.sha256(data).hexdigest() != meta.sha256:
+        raise ModelNotFoundError(f"the file of model '{model_id}' is missing from the store")
+    _write_atomic(path, data)
+    return path
+
+
+def register_demo_model(r: redis.Redis, keys: Keys, data_dir: Path) -> ModelPublic:
+    """Register the demo satellite as 'demo-sat' (generated on first use; idempotent)."""
+    from worker.demo.satellite import DEMO_MODEL_ID, DEMO_MODEL_NAME, demo_satellite_path
+    from worker.engine.meshes import load_model
+
+    path = demo_satellite_path(Path(data_dir))
+    data = path.read_bytes()
+    sha = hashlib.sha256(data).hexdigest()
+    models = ModelStore(r, keys)
+    current = models.get(DEMO_MODEL_ID)
+    if current is not None and current.sha256 == sha:
+        meta = current
+    else:
+        loaded = load_model(path)
+        meta = ModelPublic(
+            id=DEMO_MODEL_ID,
+            name=DEMO_MODEL_NAME,
+            vertices=loaded.n_vertices,
+            faces=loaded.n_faces,
+            bounds=loaded.bounds.tolist(),
+            textured=loaded.textured,
+            format="glb",
+            size_bytes=len(data),
+            sha256=sha,
+            created_at=datetime.now(UTC),
+            builtin=True,
+        )
+        models.put(meta, data)
+    if not model_cache_path(data_dir, meta).is_file():
+        _write_atomic(model_cache_path(data_dir, meta), data)
+    return meta
