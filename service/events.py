@@ -18,7 +18,7 @@ import redis.asyncio
 from starlette.concurrency import run_in_threadpool
 
 from service.resources import estimate_public
-from service.store import JobRecord, JobStore
+from service.store import JobRecord, JobStore, Reaper
 
 
 def sse(event: str, data: dict[str, Any] | str, event_id: int | None = None) -> str:
@@ -39,7 +39,7 @@ async def job_events(
 
     def current() -> JobRecord | None:
         record = store.get(job_id)
-        return store.reconcile(record, max_attempts) if record is not None else None
+        return Reaper(store, max_attempts).reconcile(record) if record is not None else None
 
     def end(record: JobRecord) -> str:
         return sse("end", estimate_public(record).model_dump_json(by_alias=True))

@@ -20,7 +20,7 @@ from service.deps import AsyncRedisDep, JobStoreDep, ModelStoreDep, SettingsDep
 from service.errors import echo, field_error, not_found, validation_failed
 from service.events import job_events
 from service.resources import estimate_location, estimate_public, estimate_summary
-from service.store import ActiveJobsLimitError, JobRecord, JobStore, ModelStore
+from service.store import ActiveJobsLimitError, JobRecord, JobStore, ModelStore, Reaper
 from service.store.models import DEMO_MODEL_ID
 from service.uploads import UploadRejected, inspect_image
 
@@ -47,7 +47,7 @@ def _get_or_404(jobs: JobStore, job_id: str, settings: Settings) -> JobRecord:
     record = jobs.get(job_id) if _JOB_ID.match(job_id) else None
     if record is None:
         raise not_found("estimate", job_id)
-    return jobs.reconcile(record, settings.job_max_attempts)
+    return Reaper(jobs, settings.job_max_attempts).reconcile(record)
 
 
 def _parse_request(part: str | UploadFile, max_bytes: int) -> EstimateCreate:
@@ -182,7 +182,7 @@ def create_estimate(
             record = _replay(earlier, fingerprint, jobs)
             response.headers["Location"] = estimate_location(record.id)
             response.headers["Idempotent-Replayed"] = "true"
-            return estimate_public(jobs.reconcile(record, settings.job_max_attempts))
+            return estimate_public(Reaper(jobs, settings.job_max_attempts).reconcile(record))
     max_iterations = engine_request.options.resolved().max_iterations
     try:
         record = jobs.create(
@@ -230,7 +230,8 @@ def list_estimates(
 ) -> EstimateList:
     records, next_seq = jobs.list_page(limit, int(cursor) if cursor is not None else None)
     items = [
-        estimate_summary(jobs.reconcile(record, settings.job_max_attempts)) for record in records
+        estimate_summary(Reaper(jobs, settings.job_max_attempts).reconcile(record))
+        for record in records
     ]
     return EstimateList(items=items, next_cursor=str(next_seq) if next_seq is not None else None)
 

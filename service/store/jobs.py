@@ -2,9 +2,9 @@
 
 The status moves queued → running → succeeded | failed | cancelled; the one way back is a
 reaper putting a running job whose worker died back in the queue (``service.store.leases``).
-Every change goes through :meth:`JobStore._transition`, a WATCH/MULTI check-and-set, so that
-the API cancelling a queued job, a worker starting it and a reaper recovering it cannot both
-win; a worker's writes are fenced by its attempt number. A job is created and enqueued in one
+Every change goes through :mod:`service.store.transitions`, a WATCH/MULTI check-and-set, so
+that the API cancelling a queued job, a worker starting it and a reaper recovering it cannot
+both win; a worker's writes are fenced by its attempt number. A job is created and enqueued in one
 transaction. Terminal jobs, their artifacts and idempotency keys expire after the retention.
 
 A store built for a ``viewer`` (the caller's principal) sees only that principal's jobs, unless
@@ -14,7 +14,7 @@ it is an admin; the workers' stores see everything.
 from __future__ import annotations
 
 import json
-from collections.abc import Callable, Sequence
+from collections.abc import Sequence
 from typing import Any
 
 import redis
@@ -25,30 +25,12 @@ from service.store.access import Principal
 from service.store.keys import Keys
 from service.store.queues import Queues
 from service.store.records import JobRecord, text, utc_now
+from service.store.transitions import Current, Transitions
 
 #: Positions scanned at most to fill one listing page (expired jobs are skipped and pruned).
 LIST_SCAN_MAX = 1000
 #: States in which a job counts against its owner's cap and may still change.
 ACTIVE_STATUSES = ("queued", "running")
-#: Fields read (under WATCH) to decide a transition.
-GUARD_FIELDS = (
-    "status",
-    "attempts",
-    "owner",
-    "rq_id",
-    "cancel_requested",
-    "timeout_s",
-    "worker",
-    "lost",
-)
-
-#: The job's fields before a transition (None where absent).
-Current = dict[str, str | None]
-Guard = Callable[[Current, Pipeline], bool]
-Fields = dict[str, str] | Callable[[Current], dict[str, str]]
-Extra = Callable[[Pipeline, Current], None]
-
-
 #: Reserve a place among the owner's active jobs (KEYS[1]) for job ARGV[1] unless ARGV[2] > 0
 #: of them are active already (-1); else the job's sequence number (INCR of KEYS[2]).
 _RESERVE = """
@@ -83,6 +65,7 @@ class JobStore:
         self.retention_s = retention_s
         self.viewer = viewer
         self.queues = queues if queues is not None else Queues(r, keys)
+        self.transitions = Transitions(r, keys, retention_s)
         self._reserve = r.register_script(_RESERVE)
 
     # ------------------------------------------------------------------ create and read
@@ -239,22 +222,12 @@ class JobStore:
         def extra(pipe: Pipeline, current: Current) -> None:
             for name, png in (artifacts or {}).items():
                 pipe.set(self.keys.job_artifact(job_id, name), png, ex=self.retention_s)
-            self.release(pipe, job_id, current)
+            self.transitions.release(pipe, job_id, current)
 
-        done = self._transition(job_id, guard, fields, extra, expire=True) is not None
+        done = self.transitions.apply(job_id, guard, fields, extra, expire=True) is not None
         if done:
             self.publish(job_id, "status", {"status": status})
         return done
-
-    def release(self, pipe: Pipeline, job_id: str, current: Current) -> None:
-        """The clean-up of a job that ends (``pipe`` in MULTI): its image, flags and lease go,
-        and it stops counting as running and against its owner's cap."""
-        pipe.delete(
-            self.keys.job_image(job_id), self.keys.job_cancel(job_id), self.keys.job_lease(job_id)
-        )
-        pipe.srem(self.keys.jobs_running, job_id)
-        pipe.srem(self.keys.jobs_queued, job_id)
-        pipe.srem(self.keys.owner_active(current["owner"] or "anonymous"), job_id)
 
     def request_cancel(self, job_id: str) -> JobRecord | None:
         """Cancel a queued job now (and take it out of the queue), or ask a running one to
@@ -275,50 +248,6 @@ class JobStore:
         self.publish(job_id, "status", {"status": "running", "cancel_requested": True})
         return self.get(job_id)
 
-    def reconcile(self, record: JobRecord, max_attempts: int) -> JobRecord:
-        """The record, after recovering it if it runs on a worker whose lease has lapsed."""
-        if record.status != "running" or self.r.exists(self.keys.job_lease(record.id)):
-            return record
-        from service.store.leases import Reaper
-
-        Reaper(self, max_attempts).recover(record.id)
-        return self.get(record.id) or record
-
     # ------------------------------------------------------------------ helpers
     def publish(self, job_id: str, event: str, data: dict[str, Any]) -> None:
         self.r.publish(self.keys.job_events(job_id), json.dumps({"event": event, "data": data}))
-
-    def _transition(
-        self,
-        job_id: str,
-        guard: Guard,
-        fields: Fields,
-        extra: Extra | None = None,
-        *,
-        watch: Sequence[str] = (),
-        expire: bool = False,
-    ) -> Current | None:
-        """Atomically: if ``guard`` accepts the job's current fields, set ``fields`` (a dict,
-        or a function of the current fields) and run ``extra`` in the same transaction.
-        Returns the fields before, or None if the guard refused (or the job is gone)."""
-        key = self.keys.job(job_id)
-        with self.r.pipeline() as pipe:
-            while True:
-                try:
-                    pipe.watch(key, *watch)
-                    values = pipe.hmget(key, GUARD_FIELDS)
-                    current = {f: text(v) for f, v in zip(GUARD_FIELDS, values, strict=True)}  # type: ignore[arg-type]
-                    if current["status"] is None or not guard(current, pipe):
-                        pipe.unwatch()
-                        return None
-                    new = fields(current) if callable(fields) else fields
-                    pipe.multi()
-                    pipe.hset(key, mapping=new)  # type: ignore[arg-type]
-                    if expire:
-                        pipe.expire(key, self.retention_s)
-                    if extra is not None:
-                        extra(pipe, current)
-                    pipe.execute()
-                    return current
-                except redis.WatchError:
-                    continue

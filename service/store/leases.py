@@ -29,10 +29,11 @@ import logging
 from redis.client import Pipeline
 
 from schemas.jobs import JobError, Progress
-from service.store.jobs import Current, JobStore
+from service.store.jobs import JobStore
 from service.store.queues import Queues
 from service.store.records import JobRecord, utc_now
 from service.store.stats import JobStats
+from service.store.transitions import Current
 
 log = logging.getLogger(__name__)
 
@@ -110,7 +111,7 @@ class Leases:
             pipe.sadd(self.keys.jobs_running, job_id)
             pipe.srem(self.keys.jobs_queued, job_id)
 
-        if self.store._transition(job_id, guard, fields, extra) is None:
+        if self.store.transitions.apply(job_id, guard, fields, extra) is None:
             return None
         self.store.publish(job_id, "status", {"status": "running"})
         return self.store.get(job_id)
@@ -148,6 +149,14 @@ class Reaper:
         self.store = store
         self.keys = store.keys
         self.max_attempts = max_attempts
+
+    def reconcile(self, record: JobRecord) -> JobRecord:
+        """The record, after recovering it if it runs on a worker whose lease has lapsed (the
+        API checks the job it is asked about, besides the workers' sweeps)."""
+        if record.status != "running" or self.store.r.exists(self.keys.job_lease(record.id)):
+            return record
+        self.recover(record.id)
+        return self.store.get(record.id) or record
 
     def sweep(self) -> list[tuple[str, str]]:
         """Check every running job; (job id, what was done) for each one recovered."""
@@ -194,9 +203,9 @@ class Reaper:
                 queues.enqueue_estimate(pipe, job_id, verdict["rq_id"], timeout_s, at_front=True)
             else:
                 pipe.expire(self.keys.job(job_id), self.store.retention_s)
-                self.store.release(pipe, job_id, current)
+                self.store.transitions.release(pipe, job_id, current)
 
-        before = self.store._transition(job_id, guard, fields, extra, watch=(lease,))
+        before = self.store.transitions.apply(job_id, guard, fields, extra, watch=(lease,))
         if before is None:
             return None
         outcome = verdict["outcome"]
@@ -277,7 +286,7 @@ class Reaper:
             timeout_s = int(current["timeout_s"] or 0) or DEFAULT_TIMEOUT_S
             queues.enqueue_estimate(pipe, job_id, new_rq_id, timeout_s, at_front=True)
 
-        done = self.store._transition(job_id, guard, {"rq_id": new_rq_id}, extra) is not None
+        done = self.store.transitions.apply(job_id, guard, {"rq_id": new_rq_id}, extra) is not None
         if done:
             log.warning(
                 "job %s: queued but missing from RQ (as %s): enqueued again",
