@@ -37,6 +37,8 @@ DEFAULT_BANDS = "3,10,20"
 DEFAULT_OUTPUT = Path("bench-output")
 #: The public models' directory, relative to the repository (a sibling checkout).
 SHARED_MODELS_DIR = Path(__file__).resolve().parents[3] / "shared" / "models"
+#: Exit status for unusable arguments (as the CLI's other commands).
+EXIT_USAGE = 2
 EXIT_INTERRUPTED = 130
 
 
@@ -253,25 +255,27 @@ def _case_conditions(config: dict[str, Any]) -> dict[str, Any]:
 
 
 def prepare(args: argparse.Namespace) -> tuple[dict[str, Any], list[tuple[str, Path]]]:
-    """The checked suite settings and the models' paths (absent shared models skipped)."""
+    """The checked suite settings and the models' paths (absent shared models skipped).
+
+    Raises
+    ------
+    BenchSetupError
+        When an argument is unusable or no model is left to bench.
+    """
     from schemas.settings import get_settings
     from worker.bench.cases import BenchSetupError, resolve_models
-    from worker.cli import BadInput
 
-    try:
-        config = make_config(args)
-        require = os.environ.get("PROXPOSE_REQUIRE_SHARED") == "1"
-        data_dir = get_settings().data_dir
-        models, skipped = resolve_models(config["models"], args.models_dir, data_dir, require)
-    except BenchSetupError as exc:
-        raise BadInput(str(exc)) from exc
+    config = make_config(args)
+    require = os.environ.get("PROXPOSE_REQUIRE_SHARED") == "1"
+    data_dir = get_settings().data_dir
+    models, skipped = resolve_models(config["models"], args.models_dir, data_dir, require)
     for message in skipped:
         print(message, file=sys.stderr)
     if not models:
-        raise BadInput("no model left to bench")
+        raise BenchSetupError("no model left to bench")
     config["models"] = [name for name, _ in models]
     if len(set(config["models"])) != len(models):
-        raise BadInput(f"a model is listed twice: {config['models']}")
+        raise BenchSetupError(f"a model is listed twice: {config['models']}")
     config["skipped_models"] = skipped
     config["conditions"] = _case_conditions(config)
     return config, models
@@ -301,9 +305,14 @@ def run(args: argparse.Namespace) -> int:
     """The ``bench`` command: run every case, then write the outputs (also when interrupted)."""
     if args.sensor:
         return run_sensor_comparison(args)
+    from worker.bench.cases import BenchSetupError
     from worker.entry import init_renderer_backend
 
-    config, models = prepare(args)
+    try:
+        config, models = prepare(args)
+    except BenchSetupError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return EXIT_USAGE
     env = environment(init_renderer_backend())
     tasks = make_tasks(config, models, args.output.resolve())
     progress = Progress(len(tasks) * len(config["methods"]), enabled=not args.quiet)
