@@ -9,6 +9,7 @@ from pydantic import BaseModel, Field
 
 from schemas.estimate import EstimateRequest, EstimateResult, Stage, StopReason
 from schemas.models import MODEL_ID_PATTERN
+from schemas.names import JobErrorCode
 from schemas.render import RenderRequest
 
 JobStatus = Literal["queued", "running", "succeeded", "failed", "cancelled"]
@@ -61,7 +62,7 @@ class Progress(BaseModel):
 class JobError(BaseModel):
     """Why a job failed: a stable code and a sentence (never a traceback)."""
 
-    code: str = Field(
+    code: JobErrorCode = Field(
         description="Engine codes (invalid_image, image_size_mismatch, invalid_model, "
         "empty_render, too_few_features, render_failed, ...) or service codes (model_not_found, "
         "timeout, worker_lost: the workers running it died job_max_attempts times, "

@@ -7,9 +7,6 @@ from typing import Annotated
 
 from pydantic import BaseModel, Field
 
-#: File extensions accepted for uploads, with the format each is read as (the same table as
-#: ``worker.engine.meshes.MESH_TYPES``; a test keeps the two equal).
-MODEL_FILE_TYPES = {".obj": "obj", ".ply": "ply", ".stl": "stl", ".glb": "glb", ".gltf": "gltf"}
 #: Model ids: the built-in "demo-sat", or the first 16 hex digits of the file's SHA-256.
 MODEL_ID_PATTERN = r"^[a-z0-9][a-z0-9-]{0,63}$"
 #: Hex digits of the SHA-256 that make an uploaded model's id.

@@ -14,6 +14,8 @@ from typing import Annotated, Literal
 from pydantic import Field, field_validator, model_validator
 from pydantic_settings import BaseSettings, NoDecode, SettingsConfigDict
 
+from schemas.names import DEFAULT_MAX_IMAGE_PIXELS, DEFAULT_MAX_MODEL_FACES
+
 #: Seconds in a day, for the retention default.
 _DAY_S = 24 * 3600
 _MIB = 1024 * 1024
@@ -129,7 +131,7 @@ class Settings(BaseSettings):
         default=64 * _MIB, ge=1024, description="Largest reference image upload, bytes."
     )
     max_image_pixels: int = Field(
-        default=4096 * 4096,
+        default=DEFAULT_MAX_IMAGE_PIXELS,
         ge=256,
         description="Largest reference image, pixels; checked from the header before decoding.",
     )
@@ -137,7 +139,10 @@ class Settings(BaseSettings):
         default=128 * _MIB, ge=1024, description="Largest model file upload, bytes."
     )
     max_model_faces: int = Field(
-        default=2_000_000, ge=1, description="Most triangles an uploaded model may have."
+        default=DEFAULT_MAX_MODEL_FACES,
+        ge=1,
+        description="Most triangles a model may have (checked on upload and when a worker loads "
+        "it).",
     )
     max_request_json_bytes: int = Field(
         default=_MIB,

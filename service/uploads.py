@@ -16,16 +16,13 @@ from typing import Any
 
 from PIL import Image
 
-from schemas.models import MODEL_FILE_TYPES
-
-#: Image formats accepted for references (the same as ``worker.engine.images``).
-IMAGE_FORMATS = ("PNG", "JPEG", "TIFF")
+from schemas.names import IMAGE_FORMATS, MODEL_FILE_TYPES, UploadErrorCode
 
 
 class UploadRejected(ValueError):
     """An uploaded file is unusable; ``code`` names why (the engine's codes where they exist)."""
 
-    def __init__(self, code: str, message: str) -> None:
+    def __init__(self, code: UploadErrorCode, message: str) -> None:
         super().__init__(message)
         self.code = code
 

@@ -13,8 +13,8 @@ import numpy as np
 import pytest
 import trimesh
 
+from schemas.names import DEMO_MODEL_ID
 from worker.demo.satellite import (
-    DEMO_MODEL_ID,
     DEMO_MODEL_NAME,
     build_demo_satellite,
     demo_satellite_path,

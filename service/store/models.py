@@ -14,11 +14,9 @@ import time
 import redis
 
 from schemas.models import ModelPublic
+from schemas.names import DEMO_MODEL_ID
 from service.store.access import Principal
 from service.store.keys import Keys
-
-#: Id of the built-in demo satellite (the same as ``worker.demo.satellite.DEMO_MODEL_ID``).
-DEMO_MODEL_ID = "demo-sat"
 
 
 class ModelStore:

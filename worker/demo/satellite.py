@@ -22,7 +22,6 @@ from trimesh.exchange.gltf import export_glb
 from worker.demo.geometry import Parts, box, cylinder, revolve, textured_mesh, tf
 from worker.demo.textures import dish_texture, mli_texture, part_texture, solar_texture
 
-DEMO_MODEL_ID = "demo-sat"
 DEMO_MODEL_NAME = "Demo satellite (procedural)"
 DEMO_FILE_NAME = "demo-sat-v1.glb"
 

@@ -3,11 +3,14 @@ and job records; the message says what was wrong in words."""
 
 from __future__ import annotations
 
+from schemas.names import JobErrorCode
+
 
 class ProxposeError(Exception):
-    """Base of every engine error."""
+    """Base of every engine error (and of the worker's own, such as a model not registered)."""
 
-    code = "engine_error"
+    #: The engine's errors carry the codes of ``schemas.names.EngineErrorCode``.
+    code: JobErrorCode = "engine_error"
 
 
 class InvalidInputError(ProxposeError):

@@ -13,16 +13,13 @@ import numpy as np
 from numpy.typing import NDArray
 from PIL import Image
 
+from schemas.names import DEFAULT_MAX_IMAGE_PIXELS, IMAGE_FORMATS
 from worker.engine.exceptions import ImageDecodeError, ImageSizeMismatchError, ImageTooLargeError
 
 FloatImage = NDArray[np.float32]
 
-#: Largest image accepted, in pixels (a decompression-bomb guard well above 4096²).
-MAX_IMAGE_PIXELS = 4096 * 4096
-_FORMATS = ("PNG", "JPEG", "TIFF")
 
-
-def decode_image(data: bytes, max_pixels: int = MAX_IMAGE_PIXELS) -> FloatImage:
+def decode_image(data: bytes, max_pixels: int = DEFAULT_MAX_IMAGE_PIXELS) -> FloatImage:
     """Decode PNG/JPEG/TIFF bytes to float32 in [0, 1], (H, W) or (H, W, 3); alpha is dropped.
 
     The header is read first (PIL, formats whitelisted) so that ImageTooLargeError is raised
@@ -32,7 +29,7 @@ def decode_image(data: bytes, max_pixels: int = MAX_IMAGE_PIXELS) -> FloatImage:
     if not data:
         raise ImageDecodeError("image is empty")
     try:
-        with Image.open(io.BytesIO(data), formats=_FORMATS) as img:
+        with Image.open(io.BytesIO(data), formats=IMAGE_FORMATS) as img:
             w, h = img.size
             fmt = img.format
     except Image.DecompressionBombError as exc:  # PIL's own guard (> 179 Mpx) fired first
@@ -71,7 +68,7 @@ def _to_float(a: NDArray[np.generic]) -> FloatImage:
     return np.ascontiguousarray(f, dtype=np.float32)
 
 
-def decode_image_file(path: str, max_pixels: int = MAX_IMAGE_PIXELS) -> FloatImage:
+def decode_image_file(path: str, max_pixels: int = DEFAULT_MAX_IMAGE_PIXELS) -> FloatImage:
     """Read and decode an image file (see :func:`decode_image`)."""
     with open(path, "rb") as f:
         return decode_image(f.read(), max_pixels)

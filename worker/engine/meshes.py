@@ -18,15 +18,12 @@ from pathlib import Path
 import numpy as np
 from numpy.typing import NDArray
 
+from schemas.names import DEFAULT_MAX_MODEL_FACES, MODEL_FILE_TYPES
 from worker.engine.exceptions import ModelLoadError, ModelTooLargeError
 from worker.engine.images import srgb_decode
 
 log = logging.getLogger(__name__)
 
-#: File extensions accepted, with the trimesh file type each is read as.
-MESH_TYPES = {".obj": "obj", ".ply": "ply", ".stl": "stl", ".glb": "glb", ".gltf": "gltf"}
-#: Faces accepted in one model.
-MAX_FACES = 2_000_000
 #: Longest texture side kept (larger ones are downsampled): memory and upload time.
 MAX_TEXTURE_SIDE_PX = 4096
 #: Models kept in each process's cache.
@@ -100,14 +97,18 @@ def file_sha256(path: Path) -> str:
     return h.hexdigest()
 
 
-def load_model(path: str | Path, max_faces: int = MAX_FACES) -> LoadedModel:
-    """Load a mesh file (cached by content hash). Raises ModelLoadError / ModelTooLargeError."""
+def load_model(path: str | Path, max_faces: int = DEFAULT_MAX_MODEL_FACES) -> LoadedModel:
+    """Load a mesh file (cached by content hash). Raises ModelLoadError / ModelTooLargeError.
+
+    ``max_faces`` is the most triangles accepted: the worker passes its setting
+    (``PROXPOSE_MAX_MODEL_FACES``), the same limit the API checks uploads against.
+    """
     path = Path(path)
     if not path.is_file():
         raise ModelLoadError(f"model file not found: {path}")
-    if path.suffix.lower() not in MESH_TYPES:  # before the cache: same bytes, other name
+    if path.suffix.lower() not in MODEL_FILE_TYPES:  # before the cache: same bytes, other name
         raise ModelLoadError(
-            f"unsupported model format '{path.suffix}' (use {', '.join(sorted(MESH_TYPES))})"
+            f"unsupported model format '{path.suffix}' (use {', '.join(sorted(MODEL_FILE_TYPES))})"
         )
     digest = file_sha256(path)
     if digest in _cache:
@@ -126,7 +127,7 @@ def load_model(path: str | Path, max_faces: int = MAX_FACES) -> LoadedModel:
 def _load_uncached(path: Path, digest: str, max_faces: int) -> LoadedModel:
     import trimesh
 
-    file_type = MESH_TYPES[path.suffix.lower()]
+    file_type = MODEL_FILE_TYPES[path.suffix.lower()]
     if file_type == "gltf":
         _check_gltf_json(path)
     try:

@@ -16,6 +16,7 @@ from pathlib import Path
 import redis
 
 from schemas.models import ModelPublic
+from schemas.names import DEMO_MODEL_ID
 from service.store import Keys, ModelStore
 from worker.engine.exceptions import ProxposeError
 
@@ -60,7 +61,7 @@ def fetch_model_file(models: ModelStore, model_id: str, data_dir: Path) -> Path:
 
 def register_demo_model(r: redis.Redis, keys: Keys, data_dir: Path) -> ModelPublic:
     """Register the demo satellite as 'demo-sat' (generated on first use; idempotent)."""
-    from worker.demo.satellite import DEMO_MODEL_ID, DEMO_MODEL_NAME, demo_satellite_path
+    from worker.demo.satellite import DEMO_MODEL_NAME, demo_satellite_path
     from worker.engine.meshes import load_model
 
     path = demo_satellite_path(Path(data_dir))
