@@ -1,6 +1,9 @@
 """The engine's entry points, shared by the CLI and the RQ job: bytes and JSON in, result out.
 
-Nothing here knows about HTTP, Redis or RQ; progress and cancellation are plain callbacks.
+Nothing here knows about HTTP, Redis or RQ; progress and cancellation are plain callbacks. The
+process's settings are read here and handed to the engine: the Mitsuba variant, and the limits
+on images and models (``PROXPOSE_MAX_IMAGE_PIXELS``, ``PROXPOSE_MAX_MODEL_FACES``) that the API
+checks uploads against, so that what the API accepts a worker does not refuse.
 """
 
 from __future__ import annotations
@@ -38,11 +41,12 @@ def run_estimate(
     with_artifacts: bool = True,
 ) -> tuple[EstimateResult, dict[str, bytes]]:
     """Estimate the pose; returns the result (artifact names filled in) and the PNG artifacts."""
+    settings = get_settings()
     init_renderer_backend()
     from worker.align.estimator import estimate
 
-    reference = decode_image(image)
-    model = load_model(model_path)
+    reference = decode_image(image, settings.max_image_pixels)
+    model = load_model(model_path, settings.max_model_faces)
     est = estimate(model, reference, request, on_iteration, should_cancel)
     artifacts: dict[str, bytes] = {}
     if with_artifacts:
@@ -56,7 +60,7 @@ def render_png(model_path: str | Path, request: RenderRequest) -> bytes:
     init_renderer_backend()
     from worker.align.estimator import get_renderer, lighting_spec, texture_level
 
-    model = load_model(model_path)
+    model = load_model(model_path, get_settings().max_model_faces)
     camera = PinholeCamera.from_schema(request.camera)
     R, t = pose_from_schema(request.pose)
     renderer = get_renderer(
