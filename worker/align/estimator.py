@@ -203,12 +203,10 @@ def _errors(
 
 
 def _covariance(session: Session) -> Covariance | None:
-    if session.fit is None:
+    fit = session.fit
+    if fit is None or len(fit.r) < 8:
         return None
-    J, r, w, x = session.fit
-    if len(r) < 8:
-        return None
-    C, sigma = covariance(J, r, w, x)
+    C, sigma = covariance(fit.J, fit.r, fit.w, fit.x)
     C = C[:6, :6]  # the pose's (marginal over the sun's tilt, when that was fitted)
     # A rotation by angle a has |q| = tan(a/2) ≈ a/2, so σ_angle = 2 σ_q.
     sig_q = np.sqrt(np.clip(np.diag(C)[:3], 0.0, None))
@@ -237,10 +235,10 @@ def _result(
     final = session.views["final"]
     with session.timed("match"):
         score = alignment_score(session.reference_grey, final.grey)
-    features = len(fit[2]) if fit else (session.history[-1].features if session.history else 0)
+    features = fit.features if fit else (session.history[-1].features if session.history else 0)
     rms = float(np.sqrt(session.history[-1].cost)) if session.history else 0.0
-    if fit is not None and len(fit[1]):
-        _, r, w, _ = fit
+    if fit is not None and len(fit.r):
+        r, w = fit.r, fit.w
         rms = float(np.sqrt(np.sum(np.repeat(w, 2) * r**2) / max(np.sum(w), 1e-12) / 2))
     sun = np.asarray(session.renderer.lighting.sun_direction, dtype=np.float64)
     asked = np.asarray(session.requested_lighting.sun_direction, dtype=np.float64)

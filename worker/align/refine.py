@@ -31,7 +31,7 @@ from worker.align.lm import (
     ransac_increment,
     weighted_cost,
 )
-from worker.align.session import RenderedView, Session
+from worker.align.session import LinearFit, RenderedView, Session
 from worker.align.sunfit import SunTilt
 from worker.align.tracked import Features, MatchedFeatures, TrackedFeatures
 from worker.engine.exceptions import TooFewFeaturesError
@@ -201,7 +201,7 @@ def run_lm_stage(
                 J = np.hstack([J, _whiten(A, st.sun_J[_rows(active)])])
             dp_all = _step(J, r, lam, w, sun)
         dp, ds = dp_all[:6], dp_all[6:]
-        session.fit = (J, r, w, st.h[active])
+        session.fit = LinearFit(J, r, w, st.h[active])
         step = step_norm(dp, session.range_)
         cost_model = weighted_cost(r, w)
         predicted_gain = cost_model - weighted_cost(r - J @ dp_all, w)
@@ -244,7 +244,9 @@ def run_lm_stage(
             session.accept(trial)
             _broyden_update(session, st, active, common, h_t, dp, sun_motion)
             st.h, st.ok = h_t, st.ok & ok_t
-            session.fit = (J[_rows(common)], r_t[_rows(common)], w[common], h_t[active][common])
+            session.fit = LinearFit(
+                J[_rows(common)], r_t[_rows(common)], w[common], h_t[active][common]
+            )
             session.record(stage, cost_trial, step, lam, True, int(common.sum()))
             lam = max(lam * 0.1, LAMBDA_MIN)
             steady, last_step = (steady + 1 if step > SLOW_RATIO * last_step else 0), step

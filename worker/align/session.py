@@ -41,6 +41,26 @@ class RenderedView:
     grey: FloatImage
 
 
+@dataclass(frozen=True)
+class LinearFit:
+    """The learned linear model r ≈ J δp at the current pose, as the covariance reads it.
+
+    ``J`` (2k, n) and ``r`` (2k,) are the whitened Jacobian rows and residuals of the k features
+    used (n = 6, or 8 with the sun's tilt), ``w`` (k,) their weights and ``x`` (k, 2) their
+    positions in the image, px.
+    """
+
+    J: Array
+    r: Array
+    w: Array
+    x: Array
+
+    @property
+    def features(self) -> int:
+        """How many features the fit rests on."""
+        return len(self.w)
+
+
 @dataclass
 class Session:
     renderer: Renderer
@@ -56,9 +76,8 @@ class Session:
     timings_s: dict[str, float] = field(default_factory=lambda: defaultdict(float))
     views: dict[str, RenderedView] = field(default_factory=dict)  # "first", "second", "final"
     current: RenderedView | None = None
-    #: (J, r, w, x) of the learned linear model at the current pose, for the covariance:
-    #: whitened rows, whitened residuals, weights, and the features' image positions (k, 2).
-    fit: tuple[Array, Array, Array, Array] | None = None
+    #: The learned linear model at the current pose (for the covariance and the result).
+    fit: LinearFit | None = None
     rng: np.random.Generator = field(default_factory=np.random.default_rng)
     #: The request's lighting (a fitted sun changes the renderer's, see worker.align.sunfit).
     requested_lighting: LightingSpec = field(init=False)
