@@ -150,122 +150,235 @@ def _broyden_update(
     J[rows] += np.outer(moved - predicted, s / (s @ s)) / S
 
 
+@dataclass
+class _System:
+    """The linearised problem at the current pose, over the active features (a of them)."""
+
+    active: NDArray[np.bool_]  # (k,) the features in the system
+    A: Array  # (a, 2, 2) their whitening
+    J_px: Array  # (2a, 6) their learned rows, px
+    J: Array  # (2a, n) whitened rows; n = 8 with the sun's tilt columns
+    r: Array  # (2a,) whitened residuals
+    w: Array  # (a,) weights
+    cost: float  # weighted cost of r
+    dp_all: Array  # (n,) the LM step over J's columns
+
+    @property
+    def dp(self) -> Array:
+        """The pose part of the step, [δq, δt]."""
+        return self.dp_all[:6]
+
+    @property
+    def ds(self) -> Array:
+        """The sun's part of the step (empty without the sun's tilt)."""
+        return self.dp_all[6:]
+
+
+@dataclass
+class _Trial:
+    """A render at the pose the step leads to, and the active features measured in it."""
+
+    view: RenderedView
+    h: Array  # (k, 2) positions in the trial render
+    ok: NDArray[np.bool_]  # (k,) found there
+    common: NDArray[np.bool_]  # (a,) active features found in both renders
+    r: Array  # (2a,) whitened residuals at the trial
+    cost_now: float  # cost at the current pose over the common features
+    cost: float  # cost at the trial over the same features
+    lost: bool  # too few common features to compare the two
+    sun_motion: Array | None  # (2k,) image motion the trial's change of sun predicts
+
+
+@dataclass
+class _Damping:
+    """λ and the counters that end a stage: consecutive rejected trials, and accepted steps in
+    a row that did not shrink by SLOW_RATIO."""
+
+    lam: float
+    rejected: int = 0
+    steady: int = 0
+    last_step: float = np.inf
+
+    def reject(self) -> None:
+        """A rejected trial: a smaller step next time."""
+        self.lam *= 10.0
+        self.rejected += 1
+
+    def accept(self, step: float) -> None:
+        """An accepted trial of size ``step``: a larger step next time."""
+        self.rejected = 0
+        self.lam = max(self.lam * 0.1, LAMBDA_MIN)
+        self.steady = self.steady + 1 if step > SLOW_RATIO * self.last_step else 0
+        self.last_step = step
+
+
 def run_lm_stage(
     session: Session, mode: str, stage: Stage, handover_step: float | None = None
 ) -> Outcome:
     """Learned-Jacobian LM from the session's pose until a stop rule fires.
 
-    With ``handover_step``, the stage ends ('handover') at the first accepted step smaller than
-    it: used when the matches-based LM stands in for a failed PnP coarse stage.
+    Each iteration sets up the features and the Jacobian where needed (:func:`_ready_state`),
+    solves the linear system for a step (:func:`_linear_system`), stops without a render when
+    that step is negligible, else renders and measures a trial (:func:`_trial`) and accepts or
+    rejects it (:func:`_judge`). With ``handover_step``, the stage ends ('handover') at the
+    first accepted step smaller than it: used when the matches-based LM stands in for a failed
+    PnP coarse stage.
     """
     opts = session.options
-    lam = opts.lambda_init
-    rejected = 0  # consecutive rejected trials
-    steady, last_step = 0, np.inf  # accepted steps in a row that did not shrink by half
+    damping = _Damping(opts.lambda_init)
     st: _State | None = None
     sun = SunTilt(session) if opts.fit_sun and stage == "refine" else None
     while session.iterations_left > 0:
-        view = session.current_view()
-        if st is None or (mode == "matches" and getattr(st.features, "view", None) is not view):
-            st = _new_state(session, mode, view)
-        if st.learned is None or (not opts.reuse_jacobian and st.learned_at is not view):
-            with session.timed("jacobian"):
-                if opts.jacobian == "analytic":
-                    st.learned = analytic_jacobian(session, st.h, st.features.feature_normals)
-                else:
-                    st.learned = learn_at_pose(session, st.h, st.features.feature_normals)
-            st.learned_at = view
-        if sun is not None and st.sun_J is None:
-            with session.timed("jacobian"):
-                st.sun_J = sun.jacobian(st.features.measure, view, st.h, st.ok)
-        active = st.ok & st.learned.ok
-        if st.inliers is not None:
-            active &= st.inliers
-        if active.sum() < opts.min_features:
-            raise TooFewFeaturesError(
-                f"only {int(active.sum())} features usable (need {opts.min_features})"
-            )
-        A = st.features.A[active]
-        J_px = st.learned.J[_rows(active)]
-        J = _whiten(A, J_px)
-        r = _whiten(A, (st.features.x_ref - st.h)[active].ravel())
-        with session.timed("solve"):
-            w = _weights(session, st, J, r, active)
-            if st.inliers is not None:
-                active_new = st.ok & st.learned.ok & st.inliers
-                if not np.array_equal(active_new, active):  # RANSAC just ran: restrict
-                    keep = active_new[active]
-                    active, J, r, w = active_new, J[_rows(keep)], r[_rows(keep)], w[keep]
-                    A, J_px = A[keep], J_px[_rows(keep)]
-            if st.sun_J is not None:
-                J = np.hstack([J, _whiten(A, st.sun_J[_rows(active)])])
-            dp_all = _step(J, r, lam, w, sun)
-        dp, ds = dp_all[:6], dp_all[6:]
-        session.fit = LinearFit(J, r, w, st.h[active])
-        step = step_norm(dp, session.range_)
-        cost_model = weighted_cost(r, w)
-        predicted_gain = cost_model - weighted_cost(r - J @ dp_all, w)
-        if step < opts.epsilon or predicted_gain < opts.cost_tolerance * cost_model:
+        st = _ready_state(session, st, mode, session.current_view(), sun)
+        system = _linear_system(session, st, damping.lam, sun)
+        session.fit = LinearFit(system.J, system.r, system.w, st.h[system.active])
+        step = step_norm(system.dp, session.range_)
+        predicted_gain = system.cost - weighted_cost(system.r - system.J @ system.dp_all, system.w)
+        if step < opts.epsilon or predicted_gain < opts.cost_tolerance * system.cost:
             # The linear model asks for a move below ε, or promises less than the tolerance:
             # converged, and no render is spent on a trial.
-            session.record(stage, cost_model, step, lam, False, int(active.sum()))
+            session.record(stage, system.cost, step, damping.lam, False, int(system.active.sum()))
             return "step_below_epsilon" if step < opts.epsilon else "cost_converged"
-        R_t, t_t = apply_increment(session.R, session.t, dp)
-        sun_before = sun.ab if sun is not None else None
-        sun_motion = None  # image motion (2k,) the trial's change of sun predicts
-        if sun is not None and st.sun_J is not None:
-            sun.set(sun.clip(sun.ab + ds))
-            sun_motion = st.sun_J @ (sun.ab - sun_before)
-        trial = session.render_view(R_t, t_t)
-        guess = st.h.copy()
-        guess[active] += (J_px @ dp).reshape(-1, 2)
-        if sun_motion is not None:
-            guess += sun_motion.reshape(-1, 2)
-        with session.timed("track"):
-            h_t, ok_t = st.features.measure(trial, guess)
-        common = ok_t[active]
-        r_t = _whiten(A, (st.features.x_ref - h_t)[active].ravel())
-        cost_now = weighted_cost(r[_rows(common)], w[common])
-        cost_trial = weighted_cost(r_t[_rows(common)], w[common])
-        lost = common.sum() < opts.min_features
-        if sun is not None and (lost or cost_trial >= cost_now):
-            sun.set(sun_before)  # the trial is rejected: back to the sun it replaced
-        if lost:
-            # The trial's render lost too many of the features to compare it on the same set:
-            # treat it as a failed step (smaller next time).
-            session.record(stage, weighted_cost(r, w), 0.0, lam, False, int(common.sum()))
-            lam *= 10.0
-            rejected += 1
-            if rejected >= MAX_REJECTIONS:
-                return "stalled"
-            continue
-        if cost_trial < cost_now:
-            rejected = 0
-            session.accept(trial)
-            _broyden_update(session, st, active, common, h_t, dp, sun_motion)
-            st.h, st.ok = h_t, st.ok & ok_t
-            session.fit = LinearFit(
-                J[_rows(common)], r_t[_rows(common)], w[common], h_t[active][common]
-            )
-            session.record(stage, cost_trial, step, lam, True, int(common.sum()))
-            lam = max(lam * 0.1, LAMBDA_MIN)
-            steady, last_step = (steady + 1 if step > SLOW_RATIO * last_step else 0), step
-            if steady >= SLOW_STEPS - 1 and opts.reuse_jacobian and stage == "refine":
-                return "slow"
-            if handover_step is not None and step < handover_step:
-                return "handover"
-            if step < opts.epsilon:
-                return "step_below_epsilon"
-            if cost_now - cost_trial < opts.cost_tolerance * cost_now:
-                return "cost_converged"
-        else:
-            session.record(stage, cost_now, 0.0, lam, False, int(common.sum()))
-            lam *= 10.0
-            rejected += 1
-            if rejected >= MAX_REJECTIONS:
-                # No step, even a damped one, lowers the measured cost: the estimate sits in
-                # the noise floor of the measurement.
-                return "cost_converged"
-            if lam > LAMBDA_MAX:
-                return "stalled"
+        trial = _trial(session, st, system, sun)
+        outcome = _judge(session, stage, st, system, trial, step, damping, handover_step)
+        if outcome is not None:
+            return outcome
     return "max_iterations"
+
+
+def _ready_state(
+    session: Session, st: _State | None, mode: str, view: RenderedView, sun: SunTilt | None
+) -> _State:
+    """The stage's state at ``view``: features made on first use (for 'matches', at each new
+    view), the Jacobian learned on first use (without reuse, at each new pose), and the
+    sun's columns once."""
+    opts = session.options
+    if st is None or (mode == "matches" and getattr(st.features, "view", None) is not view):
+        st = _new_state(session, mode, view)
+    if st.learned is None or (not opts.reuse_jacobian and st.learned_at is not view):
+        with session.timed("jacobian"):
+            if opts.jacobian == "analytic":
+                st.learned = analytic_jacobian(session, st.h, st.features.feature_normals)
+            else:
+                st.learned = learn_at_pose(session, st.h, st.features.feature_normals)
+        st.learned_at = view
+    if sun is not None and st.sun_J is None:
+        with session.timed("jacobian"):
+            st.sun_J = sun.jacobian(st.features.measure, view, st.h, st.ok)
+    return st
+
+
+def _linear_system(session: Session, st: _State, lam: float, sun: SunTilt | None) -> _System:
+    """Whitened rows and residuals of the usable features, their weights, and the LM step.
+
+    Raises TooFewFeaturesError when fewer than ``min_features`` are usable.
+    """
+    opts = session.options
+    assert st.learned is not None
+    active = st.ok & st.learned.ok
+    if st.inliers is not None:
+        active &= st.inliers
+    if active.sum() < opts.min_features:
+        raise TooFewFeaturesError(
+            f"only {int(active.sum())} features usable (need {opts.min_features})"
+        )
+    A = st.features.A[active]
+    J_px = st.learned.J[_rows(active)]
+    J = _whiten(A, J_px)
+    r = _whiten(A, (st.features.x_ref - st.h)[active].ravel())
+    with session.timed("solve"):
+        w = _weights(session, st, J, r, active)
+        if st.inliers is not None:
+            active_new = st.ok & st.learned.ok & st.inliers
+            if not np.array_equal(active_new, active):  # RANSAC just ran: restrict
+                keep = active_new[active]
+                active, J, r, w = active_new, J[_rows(keep)], r[_rows(keep)], w[keep]
+                A, J_px = A[keep], J_px[_rows(keep)]
+        if st.sun_J is not None:
+            J = np.hstack([J, _whiten(A, st.sun_J[_rows(active)])])
+        dp_all = _step(J, r, lam, w, sun)
+    return _System(active, A, J_px, J, r, w, weighted_cost(r, w), dp_all)
+
+
+def _trial(session: Session, st: _State, system: _System, sun: SunTilt | None) -> _Trial:
+    """Render at the pose the step leads to (the sun moved by its part of the step) and measure
+    the features there, starting from where the linear model predicts them. The trial is judged
+    on the same features as the current cost; one that cannot be judged, or does not lower
+    the cost, puts the sun back."""
+    R_t, t_t = apply_increment(session.R, session.t, system.dp)
+    sun_before = sun.ab if sun is not None else None
+    sun_motion = None
+    if sun is not None and st.sun_J is not None:
+        sun.set(sun.clip(sun.ab + system.ds))
+        sun_motion = st.sun_J @ (sun.ab - sun_before)
+    view = session.render_view(R_t, t_t)
+    guess = st.h.copy()
+    guess[system.active] += (system.J_px @ system.dp).reshape(-1, 2)
+    if sun_motion is not None:
+        guess += sun_motion.reshape(-1, 2)
+    with session.timed("track"):
+        h_t, ok_t = st.features.measure(view, guess)
+    common = ok_t[system.active]
+    r_t = _whiten(system.A, (st.features.x_ref - h_t)[system.active].ravel())
+    rows = _rows(common)
+    trial = _Trial(
+        view,
+        h_t,
+        ok_t,
+        common,
+        r_t,
+        cost_now=weighted_cost(system.r[rows], system.w[common]),
+        cost=weighted_cost(r_t[rows], system.w[common]),
+        lost=bool(common.sum() < session.options.min_features),
+        sun_motion=sun_motion,
+    )
+    if sun is not None and (trial.lost or trial.cost >= trial.cost_now):
+        sun.set(sun_before)  # the trial is rejected: back to the sun it replaced
+    return trial
+
+
+def _judge(
+    session: Session,
+    stage: Stage,
+    st: _State,
+    system: _System,
+    trial: _Trial,
+    step: float,
+    damping: _Damping,
+    handover_step: float | None,
+) -> Outcome | None:
+    """Accept or reject the trial, record the iteration, update λ; the stage's outcome if a
+    stop rule fires, else None."""
+    opts = session.options
+    n_common = int(trial.common.sum())
+    if trial.lost:
+        # The trial's render lost too many of the features to compare it on the same set:
+        # treat it as a failed step (smaller next time).
+        session.record(stage, system.cost, 0.0, damping.lam, False, n_common)
+        damping.reject()
+        return "stalled" if damping.rejected >= MAX_REJECTIONS else None
+    if not trial.cost < trial.cost_now:  # (a NaN cost is a rejection too)
+        session.record(stage, trial.cost_now, 0.0, damping.lam, False, n_common)
+        damping.reject()
+        if damping.rejected >= MAX_REJECTIONS:
+            # No step, even a damped one, lowers the measured cost: the estimate sits in the
+            # noise floor of the measurement.
+            return "cost_converged"
+        return "stalled" if damping.lam > LAMBDA_MAX else None
+    session.accept(trial.view)
+    _broyden_update(session, st, system.active, trial.common, trial.h, system.dp, trial.sun_motion)
+    st.h, st.ok = trial.h, st.ok & trial.ok
+    rows = _rows(trial.common)
+    x = trial.h[system.active][trial.common]
+    session.fit = LinearFit(system.J[rows], trial.r[rows], system.w[trial.common], x)
+    session.record(stage, trial.cost, step, damping.lam, True, n_common)
+    damping.accept(step)
+    if damping.steady >= SLOW_STEPS - 1 and opts.reuse_jacobian and stage == "refine":
+        return "slow"
+    if handover_step is not None and step < handover_step:
+        return "handover"
+    if step < opts.epsilon:
+        return "step_below_epsilon"
+    if trial.cost_now - trial.cost < opts.cost_tolerance * trial.cost_now:
+        return "cost_converged"
+    return None
