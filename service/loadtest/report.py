@@ -106,21 +106,41 @@ def build_report(run: Run, wall_s: float, cancelled: int) -> dict[str, Any]:
     jobs = run.jobs
     accepted = [j for j in jobs if j.job_id]
     ended = [j for j in accepted if j.terminal]
-    lost = [j for j in accepted if not j.terminal]
-    first = [j for j in accepted if j.first_of_client]
-    later = [j for j in accepted if not j.first_of_client]
-    failures: dict[str, int] = {}
-    for j in jobs:
-        if j.job_id is None:
-            code = "not_submitted:" + (j.submit_error or "deadline").split(":")[0]
-        elif j.status in ("failed", "cancelled"):
-            code = f"{j.status}:{j.error_code or 'none'}"
-        else:
-            continue
-        failures[code] = failures.get(code, 0) + 1
     ends = [j.ended_at_s for j in ended if j.ended_at_s is not None]
     span_s = max(ends) if ends else 0.0
-    ms = 1000.0
+    return {
+        **_setting(run, wall_s),
+        "jobs": _job_counts(jobs, cancelled),
+        "failures_by_code": _failures_by_code(jobs),
+        "throughput_jobs_per_min": round(60.0 * len(ended) / span_s, 2) if span_s else None,
+        "throughput_span_s": round(span_s, 3),
+        "latency_ms": _client_latency_ms(jobs),
+        "server_latency_ms": server_latency(run),
+        "throttled_429": sum(j.throttled for j in jobs),
+        "submit_retries": sum(j.submit_retries for j in jobs),
+        "poll_errors": sum(j.poll_errors for j in jobs),
+        "client": {
+            "loop_lag_ms": stats(run.loop_lag_s, 1000.0),
+            "cpu_fraction": round(run.client_cpu, 3),
+        },
+        "queue_wait_s": stats([j.queue_wait_s for j in ended if j.queue_wait_s is not None]),
+        "run_time_s": stats([j.run_time_s for j in ended if j.run_time_s is not None]),
+        "end_to_end_s": stats([j.end_to_end_s for j in ended if j.end_to_end_s is not None]),
+        "pose_error": {
+            "rotation_deg": stats(
+                [j.rotation_error_deg for j in ended if j.rotation_error_deg is not None]
+            ),
+            "translation": stats(
+                [j.translation_error for j in ended if j.translation_error is not None]
+            ),
+            "converged": sum(bool(j.converged) for j in ended),
+        },
+        "per_job": [_job_row(j) for j in jobs],
+    }
+
+
+def _setting(run: Run, wall_s: float) -> dict[str, Any]:
+    """What was run, where, and for how long (the report's first fields)."""
     return {
         "tool": "proxpose loadtest",
         "started": datetime.fromtimestamp(time.time() - wall_s).isoformat(timespec="seconds"),
@@ -141,55 +161,60 @@ def build_report(run: Run, wall_s: float, cancelled: int) -> dict[str, Any]:
         },
         "duration_s": round(wall_s, 3),
         "setup_s": round(run.setup_s, 3),
-        "jobs": {
-            "requested": len(jobs),
-            "submitted": len(accepted),
-            "not_submitted": len(jobs) - len(accepted),
-            "succeeded": sum(j.status == "succeeded" for j in accepted),
-            "failed": sum(j.status == "failed" for j in accepted),
-            "cancelled": sum(j.status == "cancelled" for j in accepted),
-            "lost": len(lost),
-            "lost_ids": [j.job_id for j in lost],
-            "cancelled_at_deadline": cancelled,
-            "requeued": sum((j.attempts or 0) > 1 for j in accepted),
-        },
-        "failures_by_code": failures,
-        "throughput_jobs_per_min": round(60.0 * len(ended) / span_s, 2) if span_s else None,
-        "throughput_span_s": round(span_s, 3),
-        "latency_ms": {
-            "submit": stats([j.submit_latency_s for j in accepted if j.submit_latency_s], ms),
-            # the first wave: every client's first submission (all at once unless --ramp-s);
-            # then one per finished job
-            "submit_first_wave": stats(
-                [j.submit_latency_s for j in first if j.submit_latency_s is not None], ms
-            ),
-            "submit_after_first_wave": stats(
-                [j.submit_latency_s for j in later if j.submit_latency_s is not None], ms
-            ),
-            "submit_throttled_429": stats([x for j in jobs for x in j.throttled_latency_s], ms),
-            "poll": stats([x for j in jobs for x in j.poll_latency_s], ms),
-        },
-        "server_latency_ms": server_latency(run),
-        "throttled_429": sum(j.throttled for j in jobs),
-        "submit_retries": sum(j.submit_retries for j in jobs),
-        "poll_errors": sum(j.poll_errors for j in jobs),
-        "client": {
-            "loop_lag_ms": stats(run.loop_lag_s, ms),
-            "cpu_fraction": round(run.client_cpu, 3),
-        },
-        "queue_wait_s": stats([j.queue_wait_s for j in ended if j.queue_wait_s is not None]),
-        "run_time_s": stats([j.run_time_s for j in ended if j.run_time_s is not None]),
-        "end_to_end_s": stats([j.end_to_end_s for j in ended if j.end_to_end_s is not None]),
-        "pose_error": {
-            "rotation_deg": stats(
-                [j.rotation_error_deg for j in ended if j.rotation_error_deg is not None]
-            ),
-            "translation": stats(
-                [j.translation_error for j in ended if j.translation_error is not None]
-            ),
-            "converged": sum(bool(j.converged) for j in ended),
-        },
-        "per_job": [_job_row(j) for j in jobs],
+    }
+
+
+def _job_counts(jobs: list[JobRun], cancelled: int) -> dict[str, Any]:
+    """How many jobs were asked for, submitted, and how each submitted one ended."""
+    accepted = [j for j in jobs if j.job_id]
+    lost = [j for j in accepted if not j.terminal]
+    return {
+        "requested": len(jobs),
+        "submitted": len(accepted),
+        "not_submitted": len(jobs) - len(accepted),
+        "succeeded": sum(j.status == "succeeded" for j in accepted),
+        "failed": sum(j.status == "failed" for j in accepted),
+        "cancelled": sum(j.status == "cancelled" for j in accepted),
+        "lost": len(lost),
+        "lost_ids": [j.job_id for j in lost],
+        "cancelled_at_deadline": cancelled,
+        "requeued": sum((j.attempts or 0) > 1 for j in accepted),
+    }
+
+
+def _failures_by_code(jobs: list[JobRun]) -> dict[str, int]:
+    """Jobs not submitted (by why) and jobs failed or cancelled (by error code)."""
+    failures: dict[str, int] = {}
+    for j in jobs:
+        if j.job_id is None:
+            code = "not_submitted:" + (j.submit_error or "deadline").split(":")[0]
+        elif j.status in ("failed", "cancelled"):
+            code = f"{j.status}:{j.error_code or 'none'}"
+        else:
+            continue
+        failures[code] = failures.get(code, 0) + 1
+    return failures
+
+
+def _client_latency_ms(jobs: list[JobRun]) -> dict[str, Any]:
+    """Latencies the clients saw, ms: submissions (all, the first wave, the rest, throttled)
+    and status polls."""
+    ms = 1000.0
+    accepted = [j for j in jobs if j.job_id]
+    first = [j for j in accepted if j.first_of_client]
+    later = [j for j in accepted if not j.first_of_client]
+    return {
+        "submit": stats([j.submit_latency_s for j in accepted if j.submit_latency_s], ms),
+        # the first wave: every client's first submission (all at once unless --ramp-s);
+        # then one per finished job
+        "submit_first_wave": stats(
+            [j.submit_latency_s for j in first if j.submit_latency_s is not None], ms
+        ),
+        "submit_after_first_wave": stats(
+            [j.submit_latency_s for j in later if j.submit_latency_s is not None], ms
+        ),
+        "submit_throttled_429": stats([x for j in jobs for x in j.throttled_latency_s], ms),
+        "poll": stats([x for j in jobs for x in j.poll_latency_s], ms),
     }
 
 
