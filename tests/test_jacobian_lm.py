@@ -1,5 +1,5 @@
 """The learned Jacobian (worker/align/jacobian.py) and the LM machinery (worker/align/lm.py), on
-synthetic linear maps and on a pinhole projection of 3D points (METHOD.md, "Signs")."""
+synthetic linear maps and on a pinhole projection of 3D points (docs/method.md, "Signs")."""
 
 from __future__ import annotations
 
@@ -177,7 +177,7 @@ def test_damping_shortens_the_step_and_keeps_it_downhill() -> None:
     assert all(a > b for a, b in zip(norms, norms[1:], strict=False))
 
 
-# -- the signs of METHOD.md on a real projection -------------------------------------------
+# -- the signs of docs/method.md on a real projection -------------------------------------
 CAMERA = PinholeCamera(640, 480, 800.0, 820.0, 330.0, 235.0, 2.0)
 
 
@@ -224,7 +224,7 @@ def test_learned_jacobian_lm_converges_on_a_pinhole_projection() -> None:
 
 
 def test_sign_error_in_the_translation_update_is_caught() -> None:
-    """Control: the mixed-up convention METHOD.md warns about walks away from the answer."""
+    """Control: the mixed-up convention docs/method.md warns about walks away from the answer."""
     rot, tra, _ = _lm_on_projection(steps=3, flip_translation=True)
     assert tra[1] > tra[0]
 

@@ -1,4 +1,4 @@
-"""Learning the feature-to-pose Jacobian from perturbed renders (METHOD.md, steps 2–4).
+"""Learning the feature-to-pose Jacobian from perturbed renders (docs/method.md, steps 2–4).
 
 Pose increments are local: a perturbation Δp = [Δq, Δt] makes R_i = R̂·C(Δq), t_i = t̂ + Δt.
 Columns of B are the Δp_i (6 × N_s); columns of E are the feature displacements they caused,

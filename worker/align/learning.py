@@ -1,4 +1,4 @@
-"""Perturbation renders and the learned Jacobian at the current pose (METHOD.md steps 2–4)."""
+"""Perturbation renders and the learned Jacobian at the current pose (docs/method.md, steps 2–4)."""
 
 from __future__ import annotations
 
@@ -152,7 +152,7 @@ def analytic_jacobian(
     with respect to the local increment [δq, δt] (central differences). Features whose ray
     misses the model (silhouette points against the sky) get no rows. Edge points keep only
     the component across the edge, like their learned rows. No render is made: this is the
-    'fast' method's alternative to METHOD.md steps 2–4, not the paper's learned Jacobian.
+    'fast' method's alternative to docs/method.md steps 2–4, not the paper's learned Jacobian.
     """
     X, hit = session.renderer.raycast(session.R, session.t, points)
     k = len(points)

@@ -1,4 +1,4 @@
-"""The learned-Jacobian Levenberg–Marquardt stage (METHOD.md steps 1–6).
+"""The learned-Jacobian Levenberg–Marquardt stage (docs/method.md, steps 1–6).
 
 Features are either fixed reference corners tracked into each render with KLT ('klt', the
 default: one feature set for the whole stage, so the Jacobian can be reused while the pose moves

@@ -1,6 +1,6 @@
 """Attitude parameterisations and pose composition.
 
-Conventions (METHOD.md): a pose maps model coordinates to camera coordinates, ``b = R a + t``.
+Conventions (docs/method.md): a pose maps model coordinates to camera coordinates, ``b = R a + t``.
 The Gibbs vector q (classical Rodrigues parameters) enters through the paper's Cayley transform
 
     R = (I + [q×])⁻¹ (I − [q×]) = ((1 − qᵀq) I + 2 q qᵀ − 2 [q×]) / (1 + qᵀq),
@@ -153,7 +153,10 @@ def orthonormalize(R: ArrayLike) -> Array:
 
 
 def apply_increment(R: ArrayLike, t: ArrayLike, dp: ArrayLike) -> tuple[Array, Array]:
-    """Apply a local pose increment dp = [δq, δt]: R ← R·C(δq), t ← t + δt (METHOD.md signs)."""
+    """Apply a local pose increment dp = [δq, δt]: R ← R·C(δq), t ← t + δt.
+
+    The signs are those of docs/method.md ("Signs").
+    """
     dp = np.asarray(dp, dtype=np.float64)
     if dp.shape != (6,):
         raise InvalidPoseError(f"dp must have shape (6,), got {dp.shape}")
