@@ -168,8 +168,6 @@ async def get_principal(request: Request) -> Principal:
 
 
 PrincipalDep = Annotated[Principal, Depends(get_principal)]
-#: For routers: ``APIRouter(dependencies=[RequireKey])`` makes every route need a key.
-RequireKey = Depends(get_principal)
 
 
 def document_bearer_auth(app: FastAPI) -> None:

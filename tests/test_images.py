@@ -16,7 +16,6 @@ from worker.engine.exceptions import ImageDecodeError, ImageSizeMismatchError, I
 from worker.engine.images import (
     check_size,
     decode_image,
-    decode_image_file,
     encode_png,
     srgb_decode,
     srgb_encode,
@@ -108,13 +107,6 @@ def test_jpeg_decodes_to_its_colours(mode: str) -> None:
         np.testing.assert_allclose(
             img[y - 8 : y + 8, x - 8 : x + 8].mean(axis=(0, 1)), want[y, x], atol=3 / 255
         )
-
-
-def test_decode_image_file(tmp_path) -> None:  # noqa: ANN001
-    a = _pixels(8, 3)
-    path = tmp_path / "ref.png"
-    path.write_bytes(_png(a))
-    np.testing.assert_allclose(decode_image_file(str(path)), _expected(a), atol=1e-7)
 
 
 def _gif() -> bytes:

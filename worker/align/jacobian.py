@@ -120,10 +120,3 @@ def learn_jacobian_per_feature(
         J[0::2][ok] = np.einsum("kij,kj->ki", Gi, rhs_u[ok]) / s
         J[1::2][ok] = np.einsum("kij,kj->ki", Gi, rhs_v[ok]) / s
     return J, ok
-
-
-def fit_residual_px(E: Array, B: Array, J: Array) -> Array:
-    """RMS misfit per feature of E ≈ J B over the views it was seen in, px, shape (m/2,)."""
-    R = E - J @ B
-    sq = R[0::2] ** 2 + R[1::2] ** 2
-    return np.sqrt(np.nanmean(sq, axis=1))

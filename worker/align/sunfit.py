@@ -81,9 +81,6 @@ class SunTilt:
         Jp[0, 6] = Jp[1, 7] = PRIOR_PX_PER_RAD
         return Jp, -PRIOR_PX_PER_RAD * self.ab
 
-    def tilt_deg(self) -> float:
-        return float(np.degrees(np.arctan(np.linalg.norm(self.ab))))
-
     def jacobian(
         self, measure: Measure, view: RenderedView, h: Array, ok: NDArray[np.bool_]
     ) -> Array:

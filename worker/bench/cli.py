@@ -39,7 +39,6 @@ DEFAULT_OUTPUT = Path("bench-output")
 SHARED_MODELS_DIR = Path(__file__).resolve().parents[3] / "shared" / "models"
 #: Exit status for unusable arguments (as the CLI's other commands).
 EXIT_USAGE = 2
-EXIT_INTERRUPTED = 130
 
 
 def _csv(text: str) -> list[str]:

@@ -8,11 +8,8 @@ Textures are drawn so that a directional light reveals many distinct, non-period
 
 from __future__ import annotations
 
-import contextlib
 import itertools
-import os
 import pathlib
-import tempfile
 from collections.abc import Callable
 from dataclasses import dataclass
 
@@ -23,6 +20,7 @@ from trimesh.exchange.gltf import export_glb
 
 from worker.demo.geometry import Parts, box, cylinder, revolve, textured_mesh, tf
 from worker.demo.textures import dish_texture, mli_texture, part_texture, solar_texture
+from worker.files import write_atomic
 
 DEMO_MODEL_NAME = "Demo satellite (procedural)"
 DEMO_FILE_NAME = "demo-sat-v1.glb"
@@ -316,22 +314,8 @@ def write_demo_satellite(path: pathlib.Path, seed: int = 0) -> pathlib.Path:
     pathlib.Path
         ``path``.
     """
-    path = pathlib.Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
     data = export_glb(build_demo_satellite(seed), include_normals=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-    try:
-        with os.fdopen(fd, "wb") as fh:
-            fh.write(data)
-            fh.flush()
-            os.fsync(fh.fileno())
-        os.chmod(tmp, 0o644)
-        os.replace(tmp, path)
-    except BaseException:
-        with contextlib.suppress(FileNotFoundError):
-            os.unlink(tmp)
-        raise
-    return path
+    return write_atomic(pathlib.Path(path), data)
 
 
 def demo_satellite_path(data_dir: pathlib.Path) -> pathlib.Path:

@@ -68,12 +68,6 @@ def _to_float(a: NDArray[np.generic]) -> FloatImage:
     return np.ascontiguousarray(f, dtype=np.float32)
 
 
-def decode_image_file(path: str, max_pixels: int = DEFAULT_MAX_IMAGE_PIXELS) -> FloatImage:
-    """Read and decode an image file (see :func:`decode_image`)."""
-    with open(path, "rb") as f:
-        return decode_image(f.read(), max_pixels)
-
-
 def check_size(image: FloatImage, width: int, height: int) -> None:
     """Raise ImageSizeMismatchError unless the image is ``width`` × ``height``."""
     h, w = image.shape[:2]

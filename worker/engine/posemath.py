@@ -140,11 +140,6 @@ def matrix_to_rotvec(R: ArrayLike) -> Array:
     return axis * angle
 
 
-def rotation_angle(R: ArrayLike) -> float:
-    """Rotation angle of R in radians, in [0, π]."""
-    return matrix_to_axis_angle(R)[1]
-
-
 def orthonormalize(R: ArrayLike) -> Array:
     """The nearest proper rotation matrix to R (SVD), shape (3, 3)."""
     U, _, Vt = np.linalg.svd(_mat3(R))
@@ -173,21 +168,6 @@ def step_norm(dp: ArrayLike, range_: float) -> float:
     dp = np.asarray(dp, dtype=np.float64)
     angle = 2.0 * np.arctan(np.linalg.norm(dp[:3]))
     return float(np.hypot(angle, np.linalg.norm(dp[3:]) / range_))
-
-
-def compose(
-    A2B: tuple[ArrayLike, ArrayLike], B2C: tuple[ArrayLike, ArrayLike]
-) -> tuple[Array, Array]:
-    """Compose rigid transforms: (R, t) of A→C from A→B and B→C."""
-    R_ab, t_ab = _mat3(A2B[0]), _vec3(A2B[1], "t")
-    R_bc, t_bc = _mat3(B2C[0]), _vec3(B2C[1], "t")
-    return R_bc @ R_ab, R_bc @ t_ab + t_bc
-
-
-def invert(A2B: tuple[ArrayLike, ArrayLike]) -> tuple[Array, Array]:
-    """Inverse rigid transform (R, t) of B→A."""
-    R, t = _mat3(A2B[0]), _vec3(A2B[1], "t")
-    return R.T, -R.T @ t
 
 
 def pose_from_schema(pose: Pose) -> tuple[Array, Array]:

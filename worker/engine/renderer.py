@@ -102,8 +102,7 @@ class Renderer:
         }
         self.stats = RenderStats()
         self._lighting = lighting
-        self._R = np.eye(3)
-        self._t = np.array([0.0, 0.0, 1.0])
+        self._R = np.eye(3)  # the attitude of the last pose: the sun turns with the camera
         try:
             self.scene = mi.load_dict(self.scene_dict())
         except Exception as exc:
@@ -173,7 +172,7 @@ class Renderer:
         cam2model[:3, 3] = -R.T @ t
         for i in range(len(self.plans)):
             self._put_transform(f"sensor{i}.to_world", cam2model)
-        self._R, self._t = R, t
+        self._R = R
         self._update_sun()
         self.params.update()
 

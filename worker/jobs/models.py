@@ -8,8 +8,6 @@ The built-in demo satellite is registered by every worker when it starts.
 from __future__ import annotations
 
 import hashlib
-import os
-import tempfile
 from datetime import UTC, datetime
 from pathlib import Path
 
@@ -19,24 +17,13 @@ from schemas.models import ModelPublic
 from schemas.names import DEMO_MODEL_ID
 from service.store import Keys, ModelStore
 from worker.engine.exceptions import ProxposeError
+from worker.files import write_atomic
 
 
 class ModelNotFoundError(ProxposeError):
     """The job names a model that is not (or no longer) registered."""
 
     code = "model_not_found"
-
-
-def _write_atomic(path: Path, data: bytes) -> None:
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-    try:
-        with os.fdopen(fd, "wb") as fh:
-            fh.write(data)
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
 
 
 def model_cache_path(data_dir: Path, model: ModelPublic) -> Path:
@@ -55,7 +42,7 @@ def fetch_model_file(models: ModelStore, model_id: str, data_dir: Path) -> Path:
     data = models.data(model_id)
     if data is None or hashlib.sha256(data).hexdigest() != meta.sha256:
         raise ModelNotFoundError(f"the file of model '{model_id}' is missing from the store")
-    _write_atomic(path, data)
+    write_atomic(path, data)
     return path
 
 
@@ -88,5 +75,5 @@ def register_demo_model(r: redis.Redis, keys: Keys, data_dir: Path) -> ModelPubl
         )
         models.put(meta, data)
     if not model_cache_path(data_dir, meta).is_file():
-        _write_atomic(model_cache_path(data_dir, meta), data)
+        write_atomic(model_cache_path(data_dir, meta), data)
     return meta
