@@ -149,7 +149,7 @@ def test_a_pass_whose_steps_do_not_shrink_is_followed_by_a_fresh_one(demo_path: 
     """A small (128 px) view where the first pass's Jacobian overstates the motion: its steps
     stay the same size (0.6° → 0.49° in four steps). The pass ends 'slow' and a new one, with a
     Jacobian learned where it stopped, converges, even when one pass was asked for."""
-    from test_service_e2e import R_TRUE, T_TRUE, camera, initial_pose, pose
+    from e2e_helpers import R_TRUE, T_TRUE, camera, initial_pose, pose
 
     from worker.entry import render_png, run_estimate
 

@@ -24,8 +24,8 @@ import httpx
 import pytest
 import redis
 from conftest import RENDER_SCRIPT, REPO, RedisServer, WorkerPool, free_port, log_tails, start_api
+from e2e_helpers import R_TRUE, T_TRUE, camera, estimate_request, pose
 from PIL import Image
-from test_service_e2e import R_TRUE, T_TRUE, camera, estimate_request, pose
 
 from schemas.settings import get_settings
 from service.store import JobStore, Keys

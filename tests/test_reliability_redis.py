@@ -18,7 +18,7 @@ import httpx
 import pytest
 import redis
 from conftest import RENDER_SCRIPT, REPO, WorkerPool, free_port, log_tails, start_api
-from test_service_e2e import CUBE_OBJ, R_TRUE, T_TRUE, camera, estimate_request, pose
+from e2e_helpers import CUBE_OBJ, R_TRUE, T_TRUE, camera, estimate_request, pose
 
 from schemas.settings import get_settings
 from service.embedded_redis import find_redis_server, redis_command

@@ -7,178 +7,37 @@ Workers are started and stopped by the tests that need a given number of them.
 
 from __future__ import annotations
 
-import io
 import json
-import os
-import subprocess
-import sys
 import time
-from collections.abc import Iterator
-from dataclasses import dataclass
-from pathlib import Path
 from typing import Any
 
-import httpx
 import numpy as np
 import pytest
-import redis
-from conftest import RENDER_SCRIPT, REPO, RedisServer, WorkerPool, free_port, log_tails, start_api
-from PIL import Image
+from e2e_helpers import (
+    ARTIFACTS,
+    CUBE_OBJ,
+    KEYS,
+    R_TRUE,
+    T_TRUE,
+    Stack,
+    assert_png,
+    camera,
+    e2e_stack,  # noqa: F401 (the stack fixture)
+    estimate_request,
+    failure,
+    pose,
+    rotation_error_deg,
+    submit,
+    wait_for,
+)
 from rq import Queue
+from rq.serializers import JSONSerializer
 
-from schemas.settings import get_settings
-from service.store import JobStore, Keys
-from worker.engine.posemath import axis_angle_to_matrix, matrix_to_quaternion, quaternion_to_matrix
+from service.store import JobStore, Queues
 
 pytestmark = pytest.mark.slow
 
-#: Redis database of this module.
-DB = 2
-KEYS = Keys("proxpose")
-#: A unit cube, corners (0, 0, 0) and (1, 1, 1), as OBJ.
-CUBE_OBJ = (
-    "".join(f"v {i & 1} {i >> 1 & 1} {i >> 2 & 1}\n" for i in range(8))
-    + "f 1 3 2\nf 2 3 4\nf 5 6 7\nf 6 8 7\nf 1 2 5\nf 2 6 5\n"
-    + "f 3 7 4\nf 4 7 8\nf 1 5 3\nf 3 5 7\nf 2 4 6\nf 4 8 6\n"
-).encode()
-ARTIFACTS = {"overlay_1", "overlay_2", "overlay_final", "difference", "final_render", "convergence"}
 
-# The truth: the demo satellite 14 m away, turned 110° about (1, 0.6, 0.3).
-AXIS = np.array([1.0, 0.6, 0.3]) / np.linalg.norm([1.0, 0.6, 0.3])
-R_TRUE = axis_angle_to_matrix(AXIS, np.radians(110.0))
-T_TRUE = np.array([0.3, -0.2, 14.0])
-
-
-def camera(side: int) -> dict[str, float]:
-    f = 1.1 * side
-    return {
-        "width": side,
-        "height": side,
-        "fx": f,
-        "fy": f,
-        "cx": side / 2 - 0.5,
-        "cy": side / 2 - 0.5,
-    }
-
-
-def pose(R: np.ndarray, t: np.ndarray) -> dict[str, list[float]]:
-    return {"t": [float(c) for c in t], "quaternion": [float(c) for c in matrix_to_quaternion(R)]}
-
-
-def initial_pose(
-    seed: int = 0, offset_deg: float = 3.0, offset_frac: float = 0.03
-) -> dict[str, Any]:
-    """The truth moved by ``offset_deg`` about a random axis and ``offset_frac`` of the range."""
-    rng = np.random.default_rng(seed)
-    unit = lambda v: v / np.linalg.norm(v)  # noqa: E731
-    R0 = R_TRUE @ axis_angle_to_matrix(unit(rng.normal(size=3)), np.radians(offset_deg))
-    t0 = T_TRUE + unit(rng.normal(size=3)) * offset_frac * np.linalg.norm(T_TRUE)
-    return pose(R0, t0)
-
-
-def estimate_request(side: int, **options: Any) -> dict[str, Any]:
-    return {
-        "model_id": "demo-sat",
-        "camera": camera(side),
-        "initial_pose": initial_pose(),
-        "ground_truth": pose(R_TRUE, T_TRUE),
-        "options": options,
-    }
-
-
-@dataclass
-class Stack:
-    api: httpx.Client
-    r: redis.Redis
-    workers: WorkerPool
-    data_dir: Path
-    logs: Path
-    references: dict[str, bytes]
-
-
-@pytest.fixture(scope="module")
-def stack(redis_server: RedisServer, tmp_path_factory: pytest.TempPathFactory) -> Iterator[Stack]:
-    root = tmp_path_factory.mktemp("e2e")
-    data_dir, logs = root / "data", root / "logs"
-    logs.mkdir()
-    r = redis.Redis.from_url(redis_server.url(DB))
-    r.flushdb()
-    env = {
-        **os.environ,
-        "PROXPOSE_REDIS_URL": redis_server.url(DB),
-        "PROXPOSE_DATA_DIR": str(data_dir),
-        "PYTHONUNBUFFERED": "1",
-    }
-    get_settings.cache_clear()
-    renders = {
-        "ref192": {"camera": camera(192), "pose": pose(R_TRUE, T_TRUE), "spp": 64},
-        "ref128": {"camera": camera(128), "pose": pose(R_TRUE, T_TRUE), "spp": 32},
-    }
-    spec = json.dumps({"data_dir": str(data_dir), "out": str(root), "renders": renders})
-    render = subprocess.Popen([sys.executable, "-c", RENDER_SCRIPT, spec], env=env, cwd=REPO)
-    port = free_port()
-    api = start_api(env, logs / "api.log", port)
-    client = httpx.Client(base_url=f"http://127.0.0.1:{port}", timeout=120.0)
-    workers = WorkerPool(env, logs, r, KEYS.estimate_queue)
-    try:
-        assert render.wait(timeout=300) == 0, "reference renders failed"
-        references = {name: (root / f"{name}.png").read_bytes() for name in renders}
-        yield Stack(client, r, workers, data_dir, logs, references)
-    finally:  # every process goes, even when stopping one of them fails
-        try:
-            workers.stop_all()
-        finally:
-            render.kill()
-            for proc in (*workers.procs.values(), api, render):
-                proc.terminate()
-                proc.wait(timeout=30)
-            r.flushdb()
-
-
-# ----------------------------------------------------------------------------- helpers
-def submit(stack: Stack, request: dict[str, Any], image: str = "ref128", **headers: str) -> Any:
-    files = {"image": ("ref.png", stack.references[image], "image/png")}
-    response = stack.api.post(
-        "/v1/estimates", files=files, data={"request": json.dumps(request)}, headers=headers
-    )
-    assert response.status_code == 202, response.text
-    return response
-
-
-def wait_for(
-    stack: Stack, job_id: str, until: set[str], timeout_s: float = 120.0
-) -> tuple[dict[str, Any], list[dict[str, Any]]]:
-    """Poll the job until its status is in ``until``; (last state, every state seen)."""
-    seen = []
-    deadline = time.monotonic() + timeout_s
-    while True:
-        job = stack.api.get(f"/v1/estimates/{job_id}").json()
-        seen.append(job)
-        if job["status"] in until:
-            return job, seen
-        assert time.monotonic() < deadline, f"job stuck: {job}"
-        time.sleep(0.1)
-
-
-def failure(stack: Stack, *jobs: dict[str, Any]) -> str:
-    """The jobs' errors and the end of every worker's log (where tracebacks go)."""
-    logs = log_tails(stack.logs)
-    errors = [(job.get("status"), job.get("error")) for job in jobs]
-    return f"jobs: {errors}\n{logs}"
-
-
-def rotation_error_deg(quaternion: list[float]) -> float:
-    dR = quaternion_to_matrix(np.asarray(quaternion)).T @ R_TRUE
-    return float(np.degrees(np.arccos(np.clip((np.trace(dR) - 1) / 2, -1, 1))))
-
-
-def assert_png(data: bytes) -> Image.Image:
-    assert data[:8] == b"\x89PNG\r\n\x1a\n"
-    Image.open(io.BytesIO(data)).verify()
-    return Image.open(io.BytesIO(data))
-
-
-# ----------------------------------------------------------------------------- tests
 def test_queued_job_waits_for_a_worker_and_a_cancelled_one_never_runs(stack: Stack) -> None:
     stack.workers.stop_all()
     ready = stack.api.get("/readyz")
@@ -328,3 +187,30 @@ def test_metrics_count_jobs_of_all_workers(stack: Stack) -> None:
     assert float(lines['proxpose_job_duration_seconds_count{kind="render"}']) >= 1
     assert float(lines["proxpose_workers"]) >= 1
     assert 'proxpose_queue_depth{queue="estimates"}' in lines
+
+
+def test_jobs_queued_under_the_names_before_the_restructuring_still_run(stack: Stack) -> None:
+    """An API from before worker/ was split into packages enqueued "worker.jobs.run_render_job"
+    and "worker.jobs.run_estimate_job"; such jobs, still queued after an upgrade, must run."""
+    stack.workers.stop_all()
+    queues = Queues(stack.r, KEYS)
+    render = {"camera": camera(64), "pose": pose(R_TRUE, T_TRUE), "spp": 1}
+    queues.renders.enqueue(
+        "worker.jobs.run_render_job", "old-render", "demo-sat", json.dumps(render),
+        job_id="old-render", result_ttl=0,
+    )  # fmt: skip
+    job = submit(stack, estimate_request(128, max_iterations=3)).json()
+    rq_id = f"{job['id']}-1"
+    assert queues.remove(queues.estimates, rq_id)  # as the old API would have enqueued it:
+    old = queues.estimates.create_job(
+        "worker.jobs.run_estimate_job", args=(job["id"],), job_id=rq_id, result_ttl=0
+    )
+    queues.estimates.enqueue_job(old)
+    assert Queue(KEYS.estimate_queue, connection=stack.r, serializer=JSONSerializer).job_ids == [
+        rq_id
+    ]
+    stack.workers.ensure(1)
+    done = stack.r.blpop([KEYS.render_done("old-render")], timeout=120)
+    assert done is not None and json.loads(done[1]) == {"status": "succeeded"}, failure(stack)
+    finished, _ = wait_for(stack, job["id"], {"succeeded", "failed", "cancelled"})
+    assert finished["status"] == "succeeded", failure(stack, finished)

@@ -1,5 +1,5 @@
 """The pages in headless Chromium against the real service (uvicorn, Redis, worker processes;
-the `stack` fixture of test_service_e2e): submit an estimate through the form and watch it run,
+the `stack` fixture of e2e_helpers): submit an estimate through the form and watch it run,
 read the result (plots, overlays, difference image, downloads), the list's auto-refresh and
 status filter, a failure in words, model previews and uploads, and the key form when API keys
 are configured. Every page must load without console errors or uncaught exceptions under the
@@ -19,15 +19,15 @@ from typing import Any
 
 import httpx
 import pytest
-import test_service_e2e
 from conftest import REPO, free_port, start_api
-from test_service_e2e import (
+from e2e_helpers import (
     CUBE_OBJ,
     DB,
     R_TRUE,
     T_TRUE,
     Stack,
     camera,
+    e2e_stack,  # noqa: F401 (the stack fixture, started again for this module)
     estimate_request,
     initial_pose,
     pose,
@@ -35,9 +35,6 @@ from test_service_e2e import (
 )
 
 pytestmark = [pytest.mark.slow, pytest.mark.browser]
-
-#: The API, Redis and worker processes of the end-to-end tests, started again for this module.
-stack = test_service_e2e.stack
 
 CHROMIUM = Path(os.environ.get("PROXPOSE_CHROMIUM", "/usr/bin/chromium"))
 CHROMIUM_ARGS = [
