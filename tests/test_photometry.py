@@ -1,0 +1,108 @@
+"""Photometry (worker/engine/photometry.py) on small synthetic images: the tone curve inverts a
+known gamma and exposure, the relative blur recovers a known one, local contrast normalisation
+ignores gain and offset, histogram matching copies a distribution, the alignment score prefers
+the aligned render, and the content mask finds the target on the sky."""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+import pytest
+from synthetic_images import blobs, rectangles
+
+from worker.engine.images import srgb_decode, to_display
+from worker.engine.photometry import (
+    alignment_score,
+    apply_tone_curve,
+    content_mask,
+    fit_tone_curve,
+    local_normalise_f,
+    match_histogram,
+    normalise_pair,
+    reference_on_render_scale,
+    relative_blur,
+    render_to_grey,
+    to_u8,
+)
+
+
+def scene() -> np.ndarray:
+    """A linear 'render': shapes of several brightnesses with a texture on them."""
+    return (rectangles() * (0.6 + 0.4 * blobs(seed=5))).astype(np.float32)
+
+
+def test_the_tone_curve_inverts_a_known_gamma_and_exposure() -> None:
+    render = to_display(scene())
+    reference = (0.7 * render) ** 1.8  # another camera: darker, another gamma
+    curve = fit_tone_curve(reference, render)
+    lit = render > 0.1
+    mapped = apply_tone_curve(reference, curve)
+    assert np.median(np.abs(mapped - render)[lit]) < 0.01
+    assert np.all(np.diff(curve[0]) > 0) and np.all(np.diff(curve[1]) >= 0)  # monotone
+
+
+def test_the_reference_is_brought_onto_the_renders_scale() -> None:
+    linear = scene()
+    reference = np.clip(0.7 * linear, 0, 1) ** (1 / 2.2)  # gamma 2.2 instead of sRGB
+    mapped = reference_on_render_scale(reference, linear)
+    lit = linear > 0.05
+    assert np.median(np.abs(mapped - render_to_grey(linear))[lit]) < 0.01
+    colour = np.dstack([reference] * 3)  # colour images pool the channels: the same answer
+    np.testing.assert_allclose(
+        reference_on_render_scale(colour, np.dstack([linear] * 3)), mapped, atol=0.01
+    )
+
+
+def test_a_blur_of_known_size_is_recovered() -> None:
+    linear = rectangles(width_px=0.4)
+    softer = cv2.GaussianBlur(linear, (0, 0), 1.0)
+    blur_render, blur_ref = relative_blur(softer, linear)  # the reference is the softer one
+    assert blur_ref == 0.0 and blur_render == pytest.approx(1.0, abs=0.1)
+    blur_render, blur_ref = relative_blur(linear, softer)  # and the other way round
+    assert blur_render == 0.0 and blur_ref == pytest.approx(1.0, abs=0.1)
+    assert relative_blur(linear, linear) == pytest.approx((0.0, 0.0), abs=0.1)
+
+
+def test_local_normalisation_ignores_gain_and_offset() -> None:
+    grey = to_display(scene())
+    np.testing.assert_allclose(
+        local_normalise_f(grey), local_normalise_f(0.5 * grey + 0.2), atol=1e-3
+    )
+
+
+def test_histogram_matching_copies_the_template_distribution() -> None:
+    source, template = blobs(seed=1), np.sqrt(blobs(seed=2))
+    matched = match_histogram(source, template)
+    q = np.linspace(0.2, 0.95, 10)  # (below: a mass of sky pixels in one bin)
+    np.testing.assert_allclose(np.quantile(matched, q), np.quantile(template, q), atol=0.01)
+    assert np.corrcoef(matched.ravel(), source.ravel())[0, 1] > 0.9  # order kept
+
+
+def test_the_alignment_score_prefers_the_aligned_render() -> None:
+    reference = to_display(scene()) ** 1.3
+    scores = [
+        alignment_score(reference, to_display(np.roll(scene(), shift, axis=1)))
+        for shift in (0, 1, 3, 8)
+    ]
+    assert scores[0] > 0.98
+    assert scores == sorted(scores, reverse=True)
+    assert alignment_score(reference, np.zeros_like(reference)) <= scores[-1]
+
+
+def test_the_content_mask_covers_the_target_and_not_the_sky() -> None:
+    img = to_u8(rectangles(rects=((40.0, 40.0, 80.0, 80.0, 0.8),)), 1.0)
+    mask = content_mask(img, dilate_px=4)
+    assert mask[60, 60] == 255 and mask[38, 60] == 255  # inside, and within the dilation
+    assert mask[10, 10] == 0 and mask[60, 100] == 0
+
+
+def test_a_pair_shares_the_renders_white_point() -> None:
+    render = to_display(scene())
+    pair = normalise_pair(0.5 * render, render)
+    assert pair.render.max() == 255 and abs(int(pair.ref.max()) - 255) <= 2
+    assert np.abs(pair.ref.astype(int) - pair.render.astype(int)).mean() < 3
+
+
+def test_srgb_round_trip_through_the_renders_grey() -> None:
+    linear = scene()
+    np.testing.assert_allclose(srgb_decode(render_to_grey(linear)), linear, atol=1e-5)

@@ -1,0 +1,91 @@
+"""The LM stage's feature sets (worker/align/tracked.py) on small synthetic images: the reference
+is the render moved by a known sub-pixel shift and given another tone curve; corners and edge
+points are found where the shift puts them, in the render and in a render moved further, and
+descriptor matches measure the same shift."""
+
+from __future__ import annotations
+
+from types import SimpleNamespace
+
+import numpy as np
+from synthetic_images import blobs, rectangles
+
+from schemas.options import EstimateOptions
+from worker.align.session import RenderedView
+from worker.align.tracked import MatchedFeatures, TrackedFeatures
+from worker.engine.photometry import render_to_grey
+
+SHIFT = np.array([0.63, -0.41])
+MOVE = np.array([1.2, 0.7])  # a further render, moved from the first
+STILL = np.zeros(2)
+
+
+def scene(shift: np.ndarray = STILL) -> np.ndarray:
+    """Linear light of a textured target on the dark sky, moved by ``shift`` px. (The texture
+    varies the edges' contrast: edge points are taken where the gradient is among the
+    strongest of the image.)"""
+    s = (float(shift[0]), float(shift[1]))
+    return (rectangles(shift=s) * (0.3 + 0.7 * blobs(shift=s, seed=4))).astype(np.float32)
+
+
+def view(shift: np.ndarray = STILL) -> RenderedView:
+    linear = scene(shift)
+    return RenderedView(np.eye(3), np.zeros(3), linear, render_to_grey(linear))
+
+
+def session(**options: object) -> SimpleNamespace:
+    """What the feature sets read of a session: the reference (the render moved by SHIFT, from
+    another camera: 0.8× the light, gamma 2 instead of sRGB) and the options."""
+    reference = (0.8 * scene(SHIFT)) ** 0.5
+    return SimpleNamespace(
+        reference=reference,
+        reference_grey=reference,
+        options=EstimateOptions(**options).resolved(),  # type: ignore[arg-type]
+    )
+
+
+def test_corners_and_edge_points_are_found_where_the_shift_puts_them() -> None:
+    feats = TrackedFeatures(session(), view())  # type: ignore[arg-type]
+    corners = len(feats.corners)
+    assert corners >= 10 and len(feats.edges) >= 10
+    h, ok = feats.measure(view(), None)
+    assert ok.mean() > 0.8
+    moved = feats.x_ref - h
+    np.testing.assert_allclose(np.median(moved[:corners][ok[:corners]], axis=0), SHIFT, atol=0.05)
+    # edge points only across the edge, where the other tone curve weighs more: to 0.1 px
+    across = np.einsum("ki,ki->k", moved[corners:], feats.normals) - feats.normals @ SHIFT
+    assert np.median(np.abs(across[ok[corners:]])) < 0.1
+
+
+def test_a_render_moved_further_is_measured_from_the_guess() -> None:
+    feats = TrackedFeatures(session(), view())  # type: ignore[arg-type]
+    h, ok = feats.measure(view(), None)
+    h2, ok2 = feats.measure(view(MOVE), h + MOVE)
+    both = ok & ok2
+    corners = len(feats.corners)
+    np.testing.assert_allclose(
+        np.median((h2 - h)[:corners][both[:corners]], axis=0), MOVE, atol=0.05
+    )
+
+
+def test_whitening_and_normals_mark_edge_points_as_one_dimensional() -> None:
+    feats = TrackedFeatures(session(), view())  # type: ignore[arg-type]
+    corners = len(feats.corners)
+    assert np.isnan(feats.feature_normals[:corners]).all()
+    np.testing.assert_allclose(np.linalg.norm(feats.feature_normals[corners:], axis=1), 1.0)
+    A_edge = feats.A[corners:]
+    np.testing.assert_allclose(np.linalg.matrix_rank(A_edge), 1)  # only across the edge
+    assert feats.A.shape == (len(feats.x_ref), 2, 2)
+
+
+def test_matched_features_measure_the_shift_and_track_into_other_renders() -> None:
+    feats = MatchedFeatures(session(max_features=100), view())  # type: ignore[arg-type]
+    assert len(feats.x_ref) >= 8
+    np.testing.assert_allclose(np.median(feats.x_ref - feats.x_base, axis=0), SHIFT, atol=0.3)
+    h, ok = feats.measure(feats.view, None)
+    assert ok.all() and np.array_equal(h, feats.x_base)
+    h2, ok2 = feats.measure(view(MOVE), feats.x_base + MOVE)
+    assert ok2.mean() > 0.8
+    np.testing.assert_allclose(np.median((h2 - feats.x_base)[ok2], axis=0), MOVE, atol=0.05)
+    assert np.isnan(feats.feature_normals).all()
+    np.testing.assert_array_equal(feats.A, np.broadcast_to(np.eye(2), feats.A.shape))
