@@ -15,6 +15,7 @@ import os
 import pkgutil
 import subprocess
 import sys
+from collections.abc import Callable
 from pathlib import Path
 
 import pytest
@@ -88,56 +89,42 @@ def test_the_worker_uses_only_the_store_and_the_logs_of_the_service() -> None:
     loaded = _loaded_after(_importing(walk("worker")))
     service = {m for m in loaded if m == "service" or m.startswith("service.")}
     assert "service.store" in service  # the check itself is live
-    others = {
-        m
-        for m in service - {"service"}
-        if not any(m == p or m.startswith(f"{p}.") for p in SERVICE_FOR_THE_WORKER)
-    }
+    others = {m for m in service - {"service"} if not _under(m, SERVICE_FOR_THE_WORKER)}
     assert not others, sorted(others)
 
 
-def _lazy_or_not(prefixes: tuple[str, ...]) -> dict[str, set[str]]:
-    """What the modules under ``prefixes`` import anywhere in their source, by module."""
-    return {
-        module: names
+def _under(name: str, prefixes: tuple[str, ...]) -> bool:
+    """Whether dotted ``name`` is one of ``prefixes`` or inside one of them."""
+    return any(name == p or name.startswith(f"{p}.") for p in prefixes)
+
+
+def _forbidden_imports(prefixes: tuple[str, ...], forbidden: Callable[[str], bool]) -> dict:
+    """The imports, anywhere in their source (inside functions too, which the import tests
+    above do not run), of the modules under ``prefixes`` that ``forbidden`` flags."""
+    found = {
+        module: sorted(n for n in names if forbidden(n))
         for module, names in imports_by_module().items()
-        if any(module == p or module.startswith(f"{p}.") for p in prefixes)
+        if _under(module, prefixes)
     }
-
-
-def _top(name: str) -> str:
-    return name.split(".")[0]
+    return {module: names for module, names in found.items() if names}
 
 
 def test_no_import_of_the_engine_or_pipeline_reaches_the_web_stack_or_the_queue() -> None:
-    """Also the imports inside functions, which the import test above does not run."""
-    found = {
-        module: sorted(n for n in names if _top(n) in WEB_AND_QUEUE)
-        for module, names in _lazy_or_not(("worker.engine", "worker.align")).items()
-    }
-    assert {m: n for m, n in found.items() if n} == {}
+    prefixes = ("worker.engine", "worker.align")
+    assert _forbidden_imports(prefixes, lambda n: n.split(".")[0] in WEB_AND_QUEUE) == {}
 
 
 def test_no_import_of_the_worker_reaches_more_of_the_service_than_store_and_logs() -> None:
-    found = {
-        module: sorted(
-            n
-            for n in names
-            if _top(n) == "service"
-            and not any(n == p or n.startswith(f"{p}.") for p in SERVICE_FOR_THE_WORKER)
-        )
-        for module, names in _lazy_or_not(("worker",)).items()
-    }
-    assert {m: n for m, n in found.items() if n} == {}
+    def forbidden(name: str) -> bool:
+        return _under(name, ("service",)) and not _under(name, SERVICE_FOR_THE_WORKER)
+
+    assert _forbidden_imports(("worker",), forbidden) == {}
     assert "service.store" in imports_by_module()["worker.jobs.runner"]  # lazily imported
 
 
 def test_no_import_of_the_store_or_the_logs_reaches_the_web_framework() -> None:
-    found = {
-        module: sorted(n for n in names if _top(n) in WEB)
-        for module, names in _lazy_or_not(("service.store", "service.logs")).items()
-    }
-    assert {m: n for m, n in found.items() if n} == {}
+    prefixes = ("service.store", "service.logs")
+    assert _forbidden_imports(prefixes, lambda n: n.split(".")[0] in WEB) == {}
 
 
 def test_store_and_logs_import_no_web_framework() -> None:
