@@ -32,7 +32,9 @@ EDGE_SPACING_PX = 5
 CANNY_LOW, CANNY_HIGH = 0.1, 0.25
 
 
-def _grid() -> tuple[Array, Array, Array]:
+def profile_grid() -> tuple[Array, Array, Array]:
+    """Offsets along (J) and across (C) the normal of every profile sample, and the samples'
+    weights W (Gaussian along the normal); flat arrays of one length."""
     j = np.arange(-PROFILE_HALF_LEN, PROFILE_HALF_LEN + 1, dtype=np.float64)
     c = np.arange(-PROFILE_HALF_WIDTH, PROFILE_HALF_WIDTH + 1, dtype=np.float64)
     J, C = np.meshgrid(j, c, indexing="ij")
@@ -40,7 +42,7 @@ def _grid() -> tuple[Array, Array, Array]:
     return J.ravel(), C.ravel(), W.ravel()
 
 
-def _sample(img: Image, x: Array, y: Array) -> Array:
+def sample(img: Image, x: Array, y: Array) -> Array:
     """Bilinear samples of ``img`` at float coordinates (any shape)."""
     shape, n = x.shape, x.size
     cols = 1024  # remap maps must stay below 32767 in each dimension
@@ -49,6 +51,17 @@ def _sample(img: Image, x: Array, y: Array) -> Array:
     my = np.pad(y.ravel(), (0, pad)).reshape(-1, cols).astype(np.float32)
     out = cv2.remap(img, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
     return out.ravel()[:n].reshape(shape).astype(np.float64)
+
+
+def profiles(img: Image, pts: Array, normals: Array, s: Array | None = None) -> Array:
+    """Intensity profiles (k, samples) of ``img`` across the edges at ``pts`` (k, 2) with unit
+    ``normals`` (k, 2), each moved by s (k,) px along its normal (the profile_grid layout)."""
+    J, C, _ = profile_grid()
+    shift = J if s is None else J + s[:, None]
+    tang = np.column_stack([-normals[:, 1], normals[:, 0]])
+    x = pts[:, :1] + C * tang[:, :1] + shift * normals[:, :1]
+    y = pts[:, 1:] + C * tang[:, 1:] + shift * normals[:, 1:]
+    return sample(img, x, y)
 
 
 def detect_edge_points(
@@ -100,29 +113,23 @@ def normal_shift(
     k = len(pts)
     if k == 0:
         return np.zeros(0), np.zeros(0, dtype=bool)
-    J, C, W = _grid()
-    tang = np.column_stack([-normals[:, 1], normals[:, 0]])
-    base_x = pts[:, :1] + C * tang[:, :1]
-    base_y = pts[:, 1:] + C * tang[:, 1:]
-    tx = base_x + J * normals[:, :1]
-    ty = base_y + J * normals[:, 1:]
-    T = _sample(template, tx, ty)
+    W = profile_grid()[2]
+    half = np.full(k, 0.5)
+    T = profiles(template, pts, normals)
     # derivative along the normal by central differences of the template profile samples
-    dT = _sample(template, tx + 0.5 * normals[:, :1], ty + 0.5 * normals[:, 1:]) - _sample(
-        template, tx - 0.5 * normals[:, :1], ty - 0.5 * normals[:, 1:]
-    )
+    dT = profiles(template, pts, normals, half) - profiles(template, pts, normals, -half)
     H = np.sum(W * dT * dT, axis=1)
+    Tc = T - np.sum(W * T, axis=1, keepdims=True) / W.sum()
     s = np.zeros(k) if s0 is None else s0.astype(np.float64).copy()
     for _ in range(SHIFT_ITERATIONS):
-        B = _sample(target, tx + s[:, None] * normals[:, :1], ty + s[:, None] * normals[:, 1:])
+        B = profiles(target, pts, normals, s)
         B = B - np.sum(W * B, axis=1, keepdims=True) / W.sum()  # offsets cancel
-        Tc = T - np.sum(W * T, axis=1, keepdims=True) / W.sum()
         step = -np.sum(W * dT * (B - Tc), axis=1) / np.maximum(H, 1e-12)
         step = np.clip(step, -1.0, 1.0)
         s += step
         if np.abs(step).max() < SHIFT_TOL_PX:
             break
-    B = _sample(target, tx + s[:, None] * normals[:, :1], ty + s[:, None] * normals[:, 1:])
+    B = profiles(target, pts, normals, s)
     ncc = _weighted_ncc(T, B, W)
     ok = (np.abs(s) < SHIFT_MAX_PX) & (ncc > MIN_PROFILE_NCC) & (H > 1e-9)
     return s, ok
