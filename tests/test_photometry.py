@@ -5,9 +5,7 @@ the aligned render, and the content mask finds the target on the sky."""
 
 from __future__ import annotations
 
-import cv2
 import numpy as np
-import pytest
 from synthetic_images import blobs, rectangles
 
 from worker.engine.images import srgb_decode, to_display
@@ -20,7 +18,6 @@ from worker.engine.photometry import (
     match_histogram,
     normalise_pair,
     reference_on_render_scale,
-    relative_blur,
     render_to_grey,
     to_u8,
 )
@@ -51,16 +48,6 @@ def test_the_reference_is_brought_onto_the_renders_scale() -> None:
     np.testing.assert_allclose(
         reference_on_render_scale(colour, np.dstack([linear] * 3)), mapped, atol=0.01
     )
-
-
-def test_a_blur_of_known_size_is_recovered() -> None:
-    linear = rectangles(width_px=0.4)
-    softer = cv2.GaussianBlur(linear, (0, 0), 1.0)
-    blur_render, blur_ref = relative_blur(softer, linear)  # the reference is the softer one
-    assert blur_ref == 0.0 and blur_render == pytest.approx(1.0, abs=0.1)
-    blur_render, blur_ref = relative_blur(linear, softer)  # and the other way round
-    assert blur_render == 0.0 and blur_ref == pytest.approx(1.0, abs=0.1)
-    assert relative_blur(linear, linear) == pytest.approx((0.0, 0.0), abs=0.1)
 
 
 def test_local_normalisation_ignores_gain_and_offset() -> None:

@@ -27,9 +27,10 @@ SHIFT_TOL_PX = 0.005
 SHIFT_MAX_PX = 6.0
 #: A shift is trusted when the two profiles correlate at least this well after it.
 MIN_PROFILE_NCC = 0.8
-#: Edge point spacing (px) and the Canny thresholds relative to the strongest gradients.
+#: Edge point spacing (px), and the Canny thresholds as fractions of the 99.5th percentile of
+#: the gradient magnitude (hysteresis: strong edges at HIGH, continued down to LOW).
 EDGE_SPACING_PX = 5
-CANNY_LOW, CANNY_HIGH = 0.1, 0.25
+CANNY_LOW, CANNY_HIGH = 0.4, 1.0
 
 
 def profile_grid() -> tuple[Array, Array, Array]:
@@ -69,6 +70,7 @@ def detect_edge_points(
     mask: NDArray[np.uint8] | None,
     max_points: int,
     spacing_px: int = EDGE_SPACING_PX,
+    thresholds: tuple[float, float] = (CANNY_LOW, CANNY_HIGH),
 ) -> tuple[Array, Array]:
     """Edge points (k, 2) and unit normals (k, 2): Canny edges, one point per grid cell.
 
@@ -81,8 +83,9 @@ def detect_edge_points(
     mag = np.hypot(gx, gy)
     top = float(np.percentile(mag, 99.5)) or 1.0
     u8 = np.clip(g / max(float(g.max()), 1e-6) * 255.0, 0, 255).astype(np.uint8)
-    scale = 255.0 / max(float(g.max()), 1e-6) * 4.0  # Sobel 3×3 sums 4× the unit gradient
-    edges = cv2.Canny(u8, CANNY_LOW * top * scale, CANNY_HIGH * top * scale, L2gradient=True)
+    scale = 255.0 / max(float(g.max()), 1e-6)  # Canny's Sobel sees u8, i.e. g × scale
+    low, high = thresholds
+    edges = cv2.Canny(u8, low * top * scale, high * top * scale, L2gradient=True)
     if mask is not None:
         edges[mask == 0] = 0
     ys, xs = np.nonzero(edges)

@@ -19,6 +19,7 @@ import cv2
 import numpy as np
 from numpy.typing import NDArray
 
+from worker.align.blur import relative_blur
 from worker.align.edges import detect_edge_points, normal_shift
 from worker.align.features import detect_corners, match_features, structure_whitening, track
 from worker.align.session import RenderedView, Session
@@ -31,7 +32,6 @@ from worker.engine.photometry import (
     normalise_pair,
     normalise_render,
     reference_on_render_scale,
-    relative_blur,
 )
 
 Array = NDArray[np.float64]
@@ -69,14 +69,15 @@ class TrackedFeatures:
         ref_linear = srgb_decode(reference_on_render_scale(session.reference, view.linear))
         # Equal sharpness too: a corner blurred differently in the two images sits elsewhere.
         # Blur acts on light, so it is measured and applied in linear units, then encoded.
-        self.blur_render, blur_ref = relative_blur(ref_linear, to_grey(view.linear))
+        self.blur_render = relative_blur(ref_linear, to_grey(view.linear))
         self.scale = contrast_scale(self._render_grey(view))
-        self.ref8 = local_normalise(srgb_encode(_blurred(ref_linear, blur_ref)), self.scale)
+        ref_grey = srgb_encode(ref_linear)
+        self.ref8 = local_normalise(ref_grey, self.scale)
         # Corners of the contrast-normalised reference: dim parts (a dark solar array) then
         # give corners as readily as the bright ones, which spreads the features out.
         self.corners = detect_corners(self.ref8, session.options.max_features, mask)
         render_f = local_normalise_f(self._render_grey(view), self.scale)
-        self.ref_f = local_normalise_f(srgb_encode(_blurred(ref_linear, blur_ref)), self.scale)
+        self.ref_f = local_normalise_f(ref_grey, self.scale)
         A_corners = structure_whitening(
             local_normalise(self._render_grey(view), self.scale), self.corners
         )

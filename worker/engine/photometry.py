@@ -3,8 +3,8 @@
 The reference comes from a real camera or another renderer (unknown exposure, gamma, colour
 response, blur, noise); the render is linear radiance from our own lights. Everything that
 compares the two goes through here: the render's grey, the reference mapped onto the render's
-tone scale (:func:`reference_on_render_scale`), matched sharpness (:func:`relative_blur`),
-local contrast normalisation for tracking, and the alignment score.
+tone scale (:func:`reference_on_render_scale`), local contrast normalisation for tracking, and
+the alignment score. (Matching the two images' sharpness needs edges: ``worker.align.blur``.)
 """
 
 from __future__ import annotations
@@ -26,8 +26,6 @@ SCORE_SMOOTH_PX = 1.5
 #: Tone-curve fit: quantile bins and the smoothing applied before comparing pixels, px.
 TONE_BINS = 48
 TONE_SMOOTH_PX = 1.5
-#: Largest extra blur matched between reference and render, px.
-BLUR_MAX_PX = 1.5
 #: Local contrast normalisation window (px) and the 8-bit gain of one local σ.
 LCN_SIGMA_PX = 4.0
 LCN_GAIN = 40.0
@@ -85,47 +83,6 @@ def fit_tone_curve(
     x = np.maximum.accumulate(np.asarray(ref_level))
     x = x + 1e-6 * np.arange(len(x))  # strictly increasing for interpolation
     return x, np.maximum.accumulate(np.asarray(render_level))
-
-
-def _gradient_energy(img: FloatImage, sigma_px: float, mask: NDArray[np.bool_]) -> float:
-    g = cv2.GaussianBlur(img, (0, 0), sigma_px) if sigma_px > 0 else img
-    gx = cv2.Sobel(g, cv2.CV_32F, 1, 0, ksize=3)
-    gy = cv2.Sobel(g, cv2.CV_32F, 0, 1, ksize=3)
-    return float(np.mean((gx * gx + gy * gy)[mask]))
-
-
-def relative_blur(reference: FloatImage, render: FloatImage) -> tuple[float, float]:
-    """Extra Gaussian blur (σ_render, σ_reference), px, that makes the two equally sharp.
-
-    A reference from another renderer or a real lens is often softer than our box-filtered
-    render, and a corner blurred differently in the two images is found at a different place.
-    Sharpness is the ratio of gradient energies at a fine and a coarse scale on the target: a
-    contrast difference cancels in the ratio and alignment does not matter; the reference's
-    noise energy (measured on the dark sky) is removed first. At most one of the two is non-zero.
-    """
-    ref = reference.astype(np.float32)
-    ren = render.astype(np.float32)
-    lit = cv2.dilate((ren > 0.02 * float(ren.max())).astype(np.uint8), np.ones((9, 9), np.uint8))
-    target, sky = lit > 0, lit == 0
-    if target.sum() < 200 or sky.sum() < 200:
-        return 0.0, 0.0
-    fine, coarse = DENOISE_SIGMA_PX, 2.0
-
-    def ratio(img: FloatImage, extra: float, denoise: bool) -> float:
-        s1, s2 = float(np.hypot(fine, extra)), float(np.hypot(coarse, extra))
-        e1, e2 = _gradient_energy(img, s1, target), _gradient_energy(img, s2, target)
-        if denoise:
-            e1 -= _gradient_energy(img, s1, sky)
-            e2 -= _gradient_energy(img, s2, sky)
-        return e1 / max(e2, 1e-12)
-
-    grid = np.arange(0.0, BLUR_MAX_PX + 1e-9, 0.05)
-    r_ref = ratio(ref, 0.0, True)
-    r_ren = np.array([ratio(ren, s, False) for s in grid])
-    if r_ref < r_ren[0]:  # the reference is softer: blur the render (ratios fall with blur)
-        return float(np.interp(-r_ref, -r_ren, grid)), 0.0
-    r_refs = np.array([ratio(ref, s, True) for s in grid])
-    return 0.0, float(np.interp(-r_ren[0], -r_refs, grid))
 
 
 def reference_on_render_scale(reference: FloatImage, render_linear: FloatImage) -> FloatImage:
