@@ -102,6 +102,12 @@ class EstimateResult(BaseModel):
     sun_tilt_deg: float = Field(
         default=0.0, description="Angle between sun_direction and the request's, degrees."
     )
+    shading_normals: Literal["file", "faceted"] = Field(
+        default="file",
+        description="Shading normals of the final render: the model file's vertex normals, or "
+        "each triangle's own (options.shading_normals 'auto' picks the one that explains the "
+        "image better).",
+    )
     errors: Errors | None = None
     initial_errors: Errors | None = None
     timings_s: dict[str, float] = Field(

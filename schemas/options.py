@@ -32,6 +32,7 @@ METHOD_PRESETS: dict[str, dict[str, Any]] = {
         "axis_cone_deg": 90.0,
         "robust": False,
         "fit_sun": False,
+        "shading_normals": "file",
         "refine_passes": 1,
         "max_iterations": 10,
     },
@@ -128,6 +129,14 @@ class EstimateOptions(BaseModel):
         description="Solve for a tilt of the sun (up to 10° from the request's direction) "
         "together with the pose in the refinement: shading features then stop pulling the "
         "pose when the request's sun direction is a few degrees off.",
+    )
+    shading_normals: Literal["auto", "file", "faceted"] = Field(
+        default="auto",
+        description="Shading normals of the renders: 'file' = the model's vertex normals "
+        "(faceted where it has none); 'faceted' = each triangle's own normal; 'auto' = after "
+        "the coarse stage, render both and keep the one that explains the image better (a "
+        "model tessellated differently from the surface that made the image shades "
+        "differently, and shading moves features).",
     )
     coarse: Literal["pnp", "none"] = Field(
         default="pnp",

@@ -58,7 +58,7 @@ def run_estimate(
 def render_png(model_path: str | Path, request: RenderRequest) -> bytes:
     """One render of the model at the request's pose, as an 8-bit sRGB PNG."""
     init_renderer_backend()
-    from worker.align.estimator import get_renderer, lighting_spec, texture_level
+    from worker.align.renderers import get_renderer, lighting_spec, texture_level
 
     model = load_model(model_path, get_settings().max_model_faces)
     camera = PinholeCamera.from_schema(request.camera)

@@ -10,8 +10,8 @@ matches per iteration from the start. 'pnp': the PnP stage alone (a baseline).
 from __future__ import annotations
 
 import time
-from collections import OrderedDict
 from dataclasses import dataclass
+from functools import partial
 
 import numpy as np
 
@@ -25,7 +25,9 @@ from worker.align.coarse import (
 )
 from worker.align.lm import covariance
 from worker.align.refine import run_lm_stage
+from worker.align.renderers import get_renderer, lighting_spec, texture_level
 from worker.align.session import CancelCheck, ProgressCallback, RenderedView, Session
+from worker.align.shading import RendererFor, choose_shading
 from worker.engine.camera import PinholeCamera
 from worker.engine.exceptions import EmptyRenderError, TooFewFeaturesError
 from worker.engine.images import FloatImage, check_size, to_grey
@@ -33,12 +35,9 @@ from worker.engine.meshes import LoadedModel
 from worker.engine.metrics import rotation_error_deg, speed_score, translation_error
 from worker.engine.photometry import alignment_score
 from worker.engine.posemath import pose_from_schema, pose_to_schema
-from worker.engine.renderer import LightingSpec, Renderer
 
 #: Refinement passes added after one that ended 'slow' (see worker.align.refine).
 MAX_EXTRA_PASSES = 2
-#: Renderers kept per process (scene build and kernel tracing are paid once per entry).
-RENDERER_CACHE_SIZE = 3
 #: Shortest side of a perturbation render, px.
 MIN_PERTURBATION_SIDE_PX = 256
 #: Fraction of a coverage grid the target must cover at the initial pose.
@@ -47,8 +46,6 @@ MIN_COVERAGE = 1e-3
 #: a stop rule can fire far from the answer, but the render then fails to explain the image.
 MIN_CONVERGED_SCORE = 0.7
 CONVERGED_REASONS = {"step_below_epsilon", "cost_converged", "pnp_converged"}
-
-_renderers: OrderedDict[tuple[object, ...], Renderer] = OrderedDict()
 
 
 @dataclass
@@ -60,46 +57,11 @@ class Estimate:
     views: dict[str, RenderedView]
 
 
-def texture_level(model: LoadedModel, camera: PinholeCamera, R: np.ndarray, t: np.ndarray) -> int:
-    """Half-octave level of the image scale (px per scene unit) at the target's range."""
-    d = float(np.linalg.norm(R @ model.centre + t))
-    return round(2.0 * np.log2(0.5 * (camera.fx + camera.fy) / d))
-
-
-def get_renderer(
-    model: LoadedModel,
-    camera: PinholeCamera,
-    lighting: LightingSpec,
-    scales: tuple[float, ...],
-    spp: int,
-    level: int = 0,
-) -> Renderer:
-    """A renderer for (model, camera, scales, texture level), reused across estimates."""
-    key = (model.sha256, camera, scales, level)
-    renderer = _renderers.get(key)
-    if renderer is None:
-        renderer = Renderer(
-            model, camera, lighting, scales=scales, spp=spp, px_per_unit=2.0 ** (level / 2.0)
-        )
-        _renderers[key] = renderer
-        while len(_renderers) > RENDERER_CACHE_SIZE:
-            _renderers.popitem(last=False)
-    else:
-        _renderers.move_to_end(key)
-        renderer.set_lighting(lighting)
-    return renderer
-
-
 def perturbation_scale(requested: float, camera: PinholeCamera) -> float:
     """The perturbation renders' scale: as requested, but never below MIN_PERTURBATION_SIDE_PX
     on the short side (a small image halved leaves the tracker too little to learn from)."""
     floor = MIN_PERTURBATION_SIDE_PX / min(camera.width, camera.height)
     return min(1.0, round(max(requested, floor), 3))
-
-
-def lighting_spec(request_lighting: object) -> LightingSpec:
-    lt = request_lighting
-    return LightingSpec(tuple(lt.sun_direction), lt.sun_irradiance, lt.ambient)  # type: ignore
 
 
 def estimate(
@@ -117,7 +79,8 @@ def estimate(
     scale = perturbation_scale(opts.perturbation_scale, camera)
     scales = (1.0,) if scale == 1.0 else (1.0, scale)
     R0, t0 = pose_from_schema(request.initial_pose)
-    renderer = get_renderer(
+    renderer_for = partial(
+        get_renderer,
         model,
         camera,
         lighting_spec(request.lighting),
@@ -125,12 +88,12 @@ def estimate(
         opts.spp,
         texture_level(model, camera, R0, t0),
     )
+    renderer = renderer_for("faceted" if opts.shading_normals == "faceted" else "file")
     if renderer.coverage(R0, t0) < MIN_COVERAGE:
         raise EmptyRenderError(
             "the model is not visible at the initial pose (check t, the attitude and the camera)"
         )
     truth = pose_from_schema(request.ground_truth) if request.ground_truth else None
-    renders_before = renderer.stats.renders
     session = Session(
         renderer=renderer,
         reference=reference,
@@ -143,16 +106,14 @@ def estimate(
         should_cancel=should_cancel,
         rng=np.random.default_rng(opts.seed),
     )
-    reason = _run_pipeline(session)
+    reason = _run_pipeline(session, renderer_for)
     session.views["final"] = session.current_view()
     session.views.setdefault("second", session.views["final"])
-    result = _result(
-        session, reason, opts, R0, t0, truth, start, renderer.stats.renders - renders_before
-    )
+    result = _result(session, reason, opts, R0, t0, truth, start, session.renders)
     return Estimate(result, session.reference, session.views)
 
 
-def _run_pipeline(session: Session) -> StopReason:
+def _run_pipeline(session: Session, renderer_for: RendererFor) -> StopReason:
     opts = session.options
     coarse_ok = False
     pnp_reason: StopReason | None = None
@@ -172,6 +133,8 @@ def _run_pipeline(session: Session) -> StopReason:
             return pnp_reason or "max_iterations"
     if opts.refine_features == "klt" and not coarse_ok:
         run_lm_stage(session, "matches", "coarse", handover_step=COARSE_HANDOVER_STEP)
+    if opts.shading_normals == "auto":
+        choose_shading(session, renderer_for)
     outcome = run_lm_stage(session, opts.refine_features, "refine")
     passes = 1
     # A pass that ended 'slow' (its Jacobian overstates the motion) earns one more, up to
@@ -258,6 +221,7 @@ def _result(
         alignment_score=score,
         sun_direction=[float(x) for x in sun],
         sun_tilt_deg=float(np.degrees(np.arccos(np.clip(sun @ asked, -1.0, 1.0)))),
+        shading_normals=session.renderer.shading,  # type: ignore[arg-type]
         errors=_errors(truth, session.R, session.t),
         initial_errors=_errors(truth, R0, t0),
         timings_s={k: round(v, 4) for k, v in session.timings_s.items()},

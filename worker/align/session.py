@@ -81,14 +81,14 @@ class Session:
     rng: np.random.Generator = field(default_factory=np.random.default_rng)
     #: The request's lighting (a fitted sun changes the renderer's, see worker.align.sunfit).
     requested_lighting: LightingSpec = field(init=False)
+    #: Renders made by this session (the renderer may be shared, or swapped mid-estimate).
+    renders: int = 0
     _renders_at_last_record: int = 0
     _ref_u8: NDArray[np.uint8] | None = None
     _described: dict[tuple[str, int], Described] = field(default_factory=dict)
     _time_at_last_record: float = field(default_factory=time.perf_counter)
 
     def __post_init__(self) -> None:
-        # The renderer is shared across estimates: count this session's renders only.
-        self._renders_at_last_record = self.renderer.stats.renders
         self.requested_lighting = self.renderer.lighting
 
     @property
@@ -146,10 +146,7 @@ class Session:
         One seed for every main render keeps render noise from changing between nearby poses,
         so cost comparisons see the pose and not the sampler.
         """
-        self.check_cancel()
-        start = self.renderer.stats.seconds
-        linear = self.renderer.render(R, t, spp=self.options.spp, seed=self.options.seed)
-        self.timings_s["render"] += self.renderer.stats.seconds - start
+        linear = self._render(R, t, 1.0, self.options.spp, self.options.seed)
         view = RenderedView(np.asarray(R), np.asarray(t), linear, render_to_grey(linear))
         self.views.setdefault("first", view)
         return view
@@ -164,13 +161,21 @@ class Session:
 
     def render_perturbed(self, R: Array, t: Array, scale: float, seed: int) -> FloatImage:
         """Display-encoded grey render for Jacobian learning (perturbation scale and spp)."""
+        return render_to_grey(self._render(R, t, scale, self.options.perturbation_spp, seed))
+
+    def _render(self, R: Array, t: Array, scale: float, spp: int, seed: int) -> FloatImage:
         self.check_cancel()
         start = self.renderer.stats.seconds
-        linear = self.renderer.render(
-            R, t, scale=scale, spp=self.options.perturbation_spp, seed=seed
-        )
+        linear = self.renderer.render(R, t, scale=scale, spp=spp, seed=seed)
         self.timings_s["render"] += self.renderer.stats.seconds - start
-        return render_to_grey(linear)
+        self.renders += 1
+        return linear
+
+    def use_renderer(self, renderer: Renderer) -> None:
+        """Render from now on with ``renderer`` (same model and camera, other physics), lit
+        as the current one is; the current view is rendered again on demand."""
+        renderer.set_lighting(self.renderer.lighting)
+        self.renderer, self.current = renderer, None
 
     def accept(self, view: RenderedView) -> None:
         """Move to the pose of ``view`` (its render becomes the current one)."""
@@ -188,7 +193,7 @@ class Session:
         features: int,
     ) -> IterationRecord:
         now = time.perf_counter()
-        renders = self.renderer.stats.renders
+        renders = self.renders
         rot_err = trans_err = None
         if self.truth is not None:
             rot_err = rotation_error_deg(self.truth[0], self.R)

@@ -79,6 +79,11 @@ class LoadedModel:
         return self.bounds.mean(axis=0)
 
     @property
+    def has_vertex_normals(self) -> bool:
+        """Whether any part has its own (smooth) shading normals."""
+        return any(p.normals is not None for p in self.parts)
+
+    @property
     def radius(self) -> float:
         """Radius of the bounding sphere about the bounding-box centre, scene units."""
         return max(

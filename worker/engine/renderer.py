@@ -33,6 +33,9 @@ FAR_CLIP_RADII = 1e5
 #: finer aliases into sampling noise. Measured on references with unfiltered textures: 6
 #: texels per pixel left half the start-at-truth drift of 1.5 on the textured models.
 TEXELS_PER_PIXEL = 6.0
+#: Shading normals a renderer can use: the model file's vertex normals (faceted where it has
+#: none), or every triangle's own normal.
+SHADINGS = ("file", "faceted")
 #: Pixel sampler: multi-jittered samples cut the edge noise of a render about 2× against
 #: independent ones at the same count, and render noise moves the cost minimum.
 SAMPLER = "multijitter"
@@ -87,6 +90,7 @@ class Renderer:
         integrator: str = "direct",
         pixel_filter: str = "box",
         px_per_unit: float | None = None,
+        shading: str = "file",
     ) -> None:
         import mitsuba as mi
 
@@ -101,6 +105,9 @@ class Renderer:
         # bitmap has no mip-mapping, and a texture much finer than the pixels aliases into
         # sampling noise that no feature tracker can see through.
         self.px_per_unit = px_per_unit
+        if shading not in SHADINGS:
+            raise ValueError(f"shading must be one of {SHADINGS}, got {shading!r}")
+        self.shading = shading
         self.plans: dict[float, RenderPlan] = {
             s: plan_render(camera if s == 1.0 else camera.scaled(s)) for s in scales
         }
@@ -163,7 +170,7 @@ class Renderer:
                 "sampler": {"type": SAMPLER, "sample_count": self.spp},
             }
         for i, part in enumerate(self.model.parts):
-            scene[f"part{i}"] = _mesh(part, f"part{i}", self.px_per_unit)
+            scene[f"part{i}"] = _mesh(part, f"part{i}", self.px_per_unit, self.shading)
         return scene
 
     # -- pose and lighting --------------------------------------------------------------
@@ -334,7 +341,9 @@ def prefiltered_texture(part: MeshPart, px_per_unit: float | None) -> NDArray[np
     return cv2.resize(part.texture, size, interpolation=cv2.INTER_AREA)
 
 
-def _mesh(part: MeshPart, name: str, px_per_unit: float | None = None) -> object:
+def _mesh(
+    part: MeshPart, name: str, px_per_unit: float | None = None, shading: str = "file"
+) -> object:
     """A Mitsuba mesh with a diffuse BSDF (texture, vertex colours or a constant albedo)."""
     import mitsuba as mi
 
@@ -351,7 +360,7 @@ def _mesh(part: MeshPart, name: str, px_per_unit: float | None = None) -> object
         reflectance = {"type": "rgb", "value": list(part.albedo)}
     props = mi.Properties()
     props["bsdf"] = mi.load_dict({"type": "diffuse", "reflectance": reflectance})
-    has_normals = part.normals is not None
+    has_normals = part.normals is not None and shading == "file"
     has_uv = part.uvs is not None and part.texture is not None
     mesh = mi.Mesh(
         name,

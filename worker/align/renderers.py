@@ -1,0 +1,63 @@
+"""The renderers of a process: one per (model, camera, scales, texture level, shading), kept.
+
+Building a Mitsuba scene and tracing its kernels costs far more than a render, so estimates
+and render jobs on the same model and camera reuse one renderer, relit for each request.
+"""
+
+from __future__ import annotations
+
+from collections import OrderedDict
+
+import numpy as np
+
+from schemas.lighting import Lighting
+from worker.engine.camera import PinholeCamera
+from worker.engine.meshes import LoadedModel
+from worker.engine.renderer import LightingSpec, Renderer
+
+#: Renderers kept per process (scene build and kernel tracing are paid once per entry).
+RENDERER_CACHE_SIZE = 4
+
+_renderers: OrderedDict[tuple[object, ...], Renderer] = OrderedDict()
+
+
+def texture_level(model: LoadedModel, camera: PinholeCamera, R: np.ndarray, t: np.ndarray) -> int:
+    """Half-octave level of the image scale (px per scene unit) at the target's range."""
+    d = float(np.linalg.norm(R @ model.centre + t))
+    return round(2.0 * np.log2(0.5 * (camera.fx + camera.fy) / d))
+
+
+def lighting_spec(lighting: Lighting) -> LightingSpec:
+    """The renderer's lighting from the request's."""
+    return LightingSpec(tuple(lighting.sun_direction), lighting.sun_irradiance, lighting.ambient)
+
+
+def get_renderer(
+    model: LoadedModel,
+    camera: PinholeCamera,
+    lighting: LightingSpec,
+    scales: tuple[float, ...],
+    spp: int,
+    level: int = 0,
+    shading: str = "file",
+) -> Renderer:
+    """A renderer for (model, camera, scales, texture level, shading), reused across estimates."""
+    key = (model.sha256, camera, scales, level, shading)
+    renderer = _renderers.get(key)
+    if renderer is None:
+        renderer = Renderer(
+            model,
+            camera,
+            lighting,
+            scales=scales,
+            spp=spp,
+            px_per_unit=2.0 ** (level / 2.0),
+            shading=shading,
+        )
+        _renderers[key] = renderer
+        while len(_renderers) > RENDERER_CACHE_SIZE:
+            _renderers.popitem(last=False)
+    else:
+        _renderers.move_to_end(key)
+        renderer.set_lighting(lighting)
+    return renderer
