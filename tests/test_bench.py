@@ -21,7 +21,8 @@ from worker.bench.cases import (
     draw_offset,
     parse_method,
 )
-from worker.bench.report import is_success, markdown, method_stats, summarize
+from worker.bench.report import markdown
+from worker.bench.stats import is_success, method_stats, summarize
 
 REPO = Path(__file__).resolve().parents[1]
 METHODS = ["default", "fast", "paper", "pnp"]
@@ -258,3 +259,101 @@ def test_quick_bench_writes_markdown_and_plot(quick_run: Path) -> None:
     assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
     image = cv2.imread(str(png))
     assert image is not None and image.shape[0] > 200 and image.shape[1] > 400
+
+
+# -- the robustness suite ---------------------------------------------------------------------
+def test_drift_and_calibration_come_from_their_own_records() -> None:
+    offset = [
+        {**record("default", 0.1 * k, 0.1), "start": "offset", "rotation_sigmas": float(k)}
+        for k in (1, 2, 4)
+    ]
+    truth = [{**record("default", d, 0.01), "start": "truth"} for d in (0.02, 0.03, 0.05)]
+    s = method_stats(offset + truth)
+    assert s["cases"] == 3 and s["drift_cases"] == 3  # the truth starts are not cases
+    assert s["rotation_deg_median"] == pytest.approx(0.2)
+    assert s["drift_rotation_deg_median"] == pytest.approx(0.03)
+    assert s["rotation_sigmas_median"] == pytest.approx(2.0)
+    assert s["rotation_within_3_sigma"] == pytest.approx(2 / 3)
+
+
+def test_robustness_summary_groups_by_class_and_kind() -> None:
+    records = [
+        {**record(m, 0.1, 0.1), "reference": ref, "start": start}
+        for m in ("default", "pnp")
+        for ref in ("faceted", "jpeg")  # a tuned class and a held-out one
+        for start in ("offset", "truth")
+    ]
+    summary = summarize(records, ["default", "pnp"])
+    assert summary["by_band"] == []  # no standard references
+    assert [g["group"] for g in summary["by_reference"]] == ["faceted", "jpeg"]
+    assert {g["group"] for g in summary["by_reference_kind"]} == {"tuned", "held out"}
+    config: dict[str, Any] = {"methods": ["default", "pnp"], "models": ["m"], "cases": 1}
+    config |= {"size_px": 64, "offsets": "uniform", "seed": 0}
+    env: dict[str, Any] = {"command": "proxpose bench", "started_at": "now", "variant": "v"}
+    env |= {"git_commit": "abc", "cpu_model": "cpu", "cpus_available": 2}
+    md = markdown(summary, config, env)
+    assert "#### Class `faceted`" in md and "#### All held out classes" in md
+    assert rows_of(md, "pnp") == 4  # two classes and two kinds
+
+
+def test_bench_rejects_an_unknown_reference_class(tmp_path: Path) -> None:
+    out = proxpose("bench", "--references", "faceted,cubist", "--output", str(tmp_path))
+    assert out.returncode == 2
+    assert "cubist" in out.stderr and "faceted" in out.stderr  # names the known ones
+
+
+def test_every_reference_class_renders_something_else(variant: str) -> None:
+    """Each class's reference differs from the estimator's own render of the same case, and
+    the classes differ from one another (the same seed: the same pose and sun)."""
+    from worker.bench.cases import bench_camera
+    from worker.bench.references import REFERENCE_CLASSES
+    from worker.bench.synth import CaseSpec, make_case
+    from worker.demo.satellite import demo_satellite_path
+    from worker.engine.meshes import load_model
+
+    model = load_model(demo_satellite_path(REPO / "data"))
+    images = {
+        name: make_case(model, bench_camera(96), CaseSpec(5.0, 0.05), 11, reference=name)
+        for name in REFERENCE_CLASSES
+    }
+    truths = {(tuple(c.R_true.ravel()), tuple(c.t_true)) for c in images.values()}
+    assert len(truths) == 1  # paired across classes
+    pixels = {name: c.reference.astype(np.float64) for name, c in images.items()}
+    for name, img in pixels.items():
+        assert img.shape == (96, 96, 3) and img.max() > 50, name  # the target is visible
+    names = list(pixels)
+    for i, a in enumerate(names):
+        for b in names[i + 1 :]:
+            target = (pixels[a] > 8) | (pixels[b] > 8)  # over the target, not the black sky
+            assert np.abs(pixels[a] - pixels[b])[target].mean() > 0.2, (a, b)
+
+
+@pytest.mark.slow
+def test_quick_robustness_bench_reports_drift(tmp_path: Path) -> None:
+    out = proxpose(
+        "bench",
+        "--robustness",
+        "--quick",
+        "--references",
+        "faceted,jpeg",
+        "--methods",
+        "default,pnp",
+        "--output",
+        str(tmp_path / "out"),
+        env={"PROXPOSE_DATA_DIR": str(tmp_path / "data")},
+        timeout=QUICK_TIMEOUT_S,
+    )
+    assert out.returncode == 0, out.stderr[-3000:]
+    data = json.loads((tmp_path / "out" / "bench.json").read_text())
+    cases = data["cases"]
+    assert len(cases) == 2 * 2 * 2  # classes × starts × methods
+    assert {(r["reference"], r["start"]) for r in cases} == {
+        (ref, start) for ref in ("faceted", "jpeg") for start in ("offset", "truth")
+    }
+    for r in cases:
+        if r["start"] == "truth":
+            assert r["initial_rotation_deg"] == pytest.approx(0.0, abs=1e-6)
+    default = data["summary"]["by_reference"][0]["methods"]["default"]
+    assert default["drift_cases"] == 1 and default["drift_rotation_deg_median"] is not None
+    md = (tmp_path / "out" / "bench.md").read_text()
+    assert "drift rot. median" in md and "#### Class `jpeg`" in md

@@ -25,8 +25,8 @@ from typing import Any
 import numpy as np
 
 from schemas.camera import Camera
-from schemas.estimate import EstimateResult
 from schemas.options import EstimateOptions
+from worker.bench.records import failure, outcome
 from worker.bench.synth import Case, CaseSpec, make_case
 from worker.engine.meshes import LoadedModel
 from worker.engine.metrics import rotation_error_deg, speed_score, translation_error
@@ -163,9 +163,15 @@ class CaseTask:
     methods: list[MethodSpec]
     output_dir: str | None = None
     save_cases: str = "failed"
+    #: "standard", or a class of worker.bench.references (the robustness suite).
+    reference: str = "standard"
+    #: "offset": from the case's initial guess; "truth": from the true pose (the drift).
+    starts: tuple[str, ...] = ("offset",)
 
     @property
     def case_id(self) -> str:
+        if self.reference != "standard":
+            return f"{self.model}-{self.reference}-{self.index:02d}"
         return f"{self.model}-b{self.band:g}-{self.index:02d}"
 
 
@@ -187,7 +193,8 @@ def build_case(task: CaseTask, model: LoadedModel) -> tuple[Case, int]:
     rot_deg, frac = draw_offset(
         task.band_lo, task.band, task.offsets, np.random.default_rng(offset_seed)
     )
-    return make_case(model, bench_camera(task.size_px), CaseSpec(rot_deg, frac), ref_seed), est_seed
+    camera, spec = bench_camera(task.size_px), CaseSpec(rot_deg, frac)
+    return make_case(model, camera, spec, ref_seed, reference=task.reference), est_seed
 
 
 def run_case(task: CaseTask, on_record: RecordCallback | None = None) -> CaseOutcome:
@@ -203,14 +210,24 @@ def run_case(task: CaseTask, on_record: RecordCallback | None = None) -> CaseOut
         if (task.model_path, spec.label) not in _warmed
     ]
     records = []
-    for spec in task.methods:
-        record = run_method(model, reference, case, spec, est_seed, _case_fields(task, case))
-        records.append(record)
-        if on_record is not None:
-            on_record(record)
+    for start in task.starts:
+        started = case if start == "offset" else _from_truth(case)
+        fields = {**_case_fields(task, started), "start": start}
+        for spec in task.methods:
+            record = run_method(model, reference, started, spec, est_seed, fields)
+            records.append(record)
+            if on_record is not None:
+                on_record(record)
     if task.output_dir and task.save_cases != "none":
         save_case(task, case, records)
     return CaseOutcome(records, warmups)
+
+
+def _from_truth(case: Case) -> Case:
+    """The case with its initial guess replaced by the true pose."""
+    truth = case.request.ground_truth
+    request = case.request.model_copy(update={"initial_pose": truth})
+    return Case(case.reference, request, case.R_true, case.t_true, case.sun_true)
 
 
 def warm_up(
@@ -244,6 +261,7 @@ def _case_fields(task: CaseTask, case: Case) -> dict[str, Any]:
         "model": task.model,
         "model_path": task.model_path,
         "band": task.band,
+        "reference": task.reference,
         "index": task.index,
         "size_px": task.size_px,
         "initial_rotation_deg": rotation_error_deg(case.R_true, R0),
@@ -271,60 +289,11 @@ def run_method(
     try:
         result = estimate(model, reference, request).result
     except ProxposeError as exc:
-        return {**record, **_failure(exc.code, exc), "seconds": _elapsed(start)}
+        return {**record, **failure(exc.code, exc), "seconds": _elapsed(start)}
     except Exception as exc:  # a bug in one method must not end a long run; it is reported
         log.exception("method %s crashed on case %s", spec.label, fields["case_id"])
-        return {**record, **_failure("crash", exc), "seconds": _elapsed(start)}
-    return {**record, **_outcome(result), "seconds": _elapsed(start)}
-
-
-def _failure(code: str, exc: Exception) -> dict[str, Any]:
-    return {
-        "failed": True,
-        "error_code": code,
-        "error": f"{type(exc).__name__}: {exc}",
-        "rotation_deg": None,
-        "translation_pct": None,
-        "translation": None,
-        "speed_score": None,
-        "iterations": None,
-        "renders": None,
-    }
-
-
-def _outcome(result: EstimateResult) -> dict[str, Any]:
-    err = result.errors
-    assert err is not None  # every bench request carries the ground truth
-    return {
-        "failed": False,
-        "error_code": None,
-        "error": None,
-        "rotation_deg": err.rotation_deg,
-        "translation_pct": err.translation_pct_of_range,
-        "translation": err.translation,
-        "speed_score": err.speed_score,
-        "iterations": result.iterations,
-        "renders": result.renders,
-        "engine_seconds": result.seconds,
-        "converged": result.converged,
-        "reason": result.reason,
-        "features": result.features,
-        "rms_residual_px": result.rms_residual_px,
-        "timings_s": result.timings_s,
-        "history": [
-            {
-                "stage": h.stage,
-                "cost_px2": h.cost,
-                "features": h.features,
-                "renders": h.renders,
-                "accepted": h.accepted,
-                "seconds": h.seconds,
-                "rotation_deg": h.rotation_error_deg,
-                "translation": h.translation_error,
-            }
-            for h in result.history
-        ],
-    }
+        return {**record, **failure("crash", exc), "seconds": _elapsed(start)}
+    return {**record, **outcome(result), "seconds": _elapsed(start)}
 
 
 def save_case(task: CaseTask, case: Case, records: list[dict[str, Any]]) -> None:
@@ -333,7 +302,7 @@ def save_case(task: CaseTask, case: Case, records: list[dict[str, Any]]) -> None
     With ``save_cases="failed"`` only cases some method did not solve are written; the
     records of the written methods get a ``reproduce`` command line.
     """
-    from worker.bench.report import is_success
+    from worker.bench.stats import is_success
 
     chosen = [r for r in records if task.save_cases == "all" or not is_success(r)]
     if not chosen or task.output_dir is None:

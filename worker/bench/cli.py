@@ -32,6 +32,10 @@ SUITES: dict[str, dict[str, Any]] = {
     "small": {"models": ALL_MODELS, "cases": 3, "size_px": 512},
     "full": {"models": ALL_MODELS, "cases": 10, "size_px": 512},
 }
+#: The robustness suite's initial offsets: (lo, hi] degrees and percent of the range.
+ROBUSTNESS_BAND = (3.0, 10.0)
+#: Cases per model and reference class in the robustness suite (2 starts each).
+ROBUSTNESS_CASES = 2
 DEFAULT_METHODS = "default,fast,paper,pnp"
 DEFAULT_BANDS = "3,10,20"
 DEFAULT_OUTPUT = Path("bench-output")
@@ -60,6 +64,22 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     suite = parser.add_mutually_exclusive_group()
     suite.add_argument("--quick", action="store_true", help="smoke test: demo sat, 1 case, 160 px")
     suite.add_argument("--full", action="store_true", help="10 cases per model and band")
+    parser.add_argument(
+        "--robustness",
+        action="store_true",
+        help="the robustness suite: references made with other physics, one class at a time "
+        f"(offsets in ({ROBUSTNESS_BAND[0]:g}, {ROBUSTNESS_BAND[1]:g}]°), each estimate also "
+        "started at the truth (the drift)",
+    )
+    parser.add_argument(
+        "--references", type=_csv, help="reference classes of --robustness (default: all)"
+    )
+    parser.add_argument(
+        "--starts",
+        type=_csv,
+        help="--robustness: start from the case's guess ('offset'), the true pose ('truth') or "
+        "both (default: offset,truth)",
+    )
     parser.add_argument(
         "--models", type=_csv, help="demo, iss, aura, phobos or mesh paths (default: all)"
     )
@@ -112,12 +132,16 @@ def make_config(args: argparse.Namespace) -> dict[str, Any]:
 
     name = "quick" if args.quick else "full" if args.full else "small"
     preset = SUITES[name]
+    robust = bool(args.robustness or args.references)
+    cases = ROBUSTNESS_CASES if robust and name == "small" else preset["cases"]
     config = {
-        "suite": name,
+        "suite": f"robustness-{name}" if robust else name,
         "models": args.models or preset["models"],
         "methods": [parse_method(m).label for m in args.methods],
-        "bands": args.bands,
-        "cases": preset["cases"] if args.cases is None else args.cases,
+        "bands": [ROBUSTNESS_BAND[1]] if robust else args.bands,
+        "references": _references(args.references) if robust else ["standard"],
+        "starts": _starts(args.starts) if robust else ["offset"],
+        "cases": cases if args.cases is None else args.cases,
         "size_px": preset["size_px"] if args.size is None else args.size,
         "seed": args.seed,
         "offsets": args.offsets,
@@ -135,13 +159,37 @@ def make_config(args: argparse.Namespace) -> dict[str, Any]:
     return config
 
 
+def _references(names: list[str] | None) -> list[str]:
+    from worker.bench.cases import BenchSetupError
+    from worker.bench.references import REFERENCE_CLASSES
+
+    unknown = sorted(set(names or []) - set(REFERENCE_CLASSES))
+    if unknown:
+        known = ", ".join(REFERENCE_CLASSES)
+        raise BenchSetupError(f"unknown reference class {unknown[0]!r} (known: {known})")
+    return names or list(REFERENCE_CLASSES)
+
+
+def _starts(names: list[str] | None) -> list[str]:
+    from worker.bench.cases import BenchSetupError
+
+    starts = names or ["offset", "truth"]
+    if not set(starts) <= {"offset", "truth"} or len(set(starts)) != len(starts):
+        raise BenchSetupError(f"starts must be 'offset' and/or 'truth', got {starts}")
+    return starts
+
+
 def make_tasks(
     config: dict[str, Any], models: list[tuple[str, Path]], output_dir: Path
 ) -> list[CaseTask]:
-    """One task per (model, band, case index), in that order."""
+    """One task per (model, band, case index), in that order; for the robustness suite one per
+    (model, reference class, case index), each run from its guess and from the truth."""
     from worker.bench.cases import CaseTask, band_edges, parse_method
 
     methods = [parse_method(m) for m in config["methods"]]
+    robust = config["references"] != ["standard"]
+    bands = [ROBUSTNESS_BAND] if robust else band_edges(config["bands"])
+    starts = tuple(config["starts"])
     return [
         CaseTask(
             model=name,
@@ -155,9 +203,12 @@ def make_tasks(
             methods=methods,
             output_dir=str(output_dir),
             save_cases=config["save_cases"],
+            reference=reference,
+            starts=starts,
         )
         for name, path in models
-        for lo, hi in band_edges(config["bands"])
+        for reference in config["references"]
+        for lo, hi in bands
         for i in range(config["cases"])
     ]
 
@@ -183,7 +234,7 @@ class Progress:
         self.bar.set_postfix_str(f"{task.case_id}: rendering the reference")
 
     def record(self, record: dict[str, Any]) -> None:
-        from worker.bench.report import is_success
+        from worker.bench.stats import is_success
 
         self.done += 1
         self.successes += is_success(record)
@@ -314,7 +365,8 @@ def run(args: argparse.Namespace) -> int:
         return EXIT_USAGE
     env = environment(init_renderer_backend())
     tasks = make_tasks(config, models, args.output.resolve())
-    progress = Progress(len(tasks) * len(config["methods"]), enabled=not args.quiet)
+    total = sum(len(task.starts) for task in tasks) * len(config["methods"])
+    progress = Progress(total, enabled=not args.quiet)
     start, status = time.perf_counter(), "interrupted"
     done: dict[int, CaseOutcome] = {}
     try:

@@ -100,7 +100,8 @@ def write_outputs(
     status: str,
 ) -> dict[str, Any]:
     """Write bench.json, bench.md and error_vs_offset.png; return the summary."""
-    from worker.bench.report import markdown, plot_error_vs_offset, summarize
+    from worker.bench.report import markdown, plot_error_vs_offset
+    from worker.bench.stats import summarize
 
     records = [r for o in outcomes for r in o.records]
     summary = summarize(records, config["methods"])
@@ -123,7 +124,21 @@ def write_outputs(
 
 
 def print_summary(summary: dict[str, Any], output_dir: Path) -> None:
-    """One line per band and method on stdout."""
+    """One line per band (or reference class) and method on stdout."""
+
+    def num(v: float | None) -> str:
+        return "—" if v is None else f"{v:.3g}"
+
+    for group in summary["by_reference"]:
+        for method, s in group["methods"].items():
+            if not s["cases"] and not s["drift_cases"]:
+                continue
+            print(
+                f"{group['group']:<9} {method:<14} {s['successes']}/{s['cases']} ok  "
+                f"rot. median {num(s['rotation_deg_median'])}°  "
+                f"drift median {num(s['drift_rotation_deg_median'])}°  "
+                f"error/σ median {num(s['rotation_sigmas_median'])}"
+            )
     for group in summary["by_band"]:
         for method, s in group["methods"].items():
             if not s["cases"]:

@@ -1,135 +1,23 @@
-"""Bench statistics and reports: the summary per method and band, Markdown tables, the plot.
-
-Conventions (also stated in bench/README.md):
-
-- A case is a *success* when the estimate returned and is within SUCCESS_ROTATION_DEG and
-  SUCCESS_TRANSLATION_PCT of the truth.
-- Error statistics are over *all* cases of a group: an estimate that raised (too few features,
-  ...) counts with its initial offset, the pose a user would be left with.
-- Cost statistics (iterations, renders) are over the estimates that returned; wall seconds
-  are over all of them (a failure costs time too).
-- Percentiles interpolate linearly (numpy's default); with few cases p90 is near the maximum.
-- Ratios compare a method with the baseline row (``default`` when it was run, else the first
-  method): median renders, median seconds and median errors, method ÷ baseline.
-"""
+"""Bench reports: Markdown tables per band, per model and per reference class, and the plot
+of error against initial offset (statistics in :mod:`worker.bench.stats`)."""
 
 from __future__ import annotations
 
-from collections import Counter
-from collections.abc import Callable, Iterable
 from typing import Any
 
 import numpy as np
 
-#: Largest rotation error of a successful estimate, degrees.
-SUCCESS_ROTATION_DEG = 1.0
-#: Largest translation error of a successful estimate, percent of the range ‖t‖.
-SUCCESS_TRANSLATION_PCT = 1.0
+from worker.bench.stats import (
+    SUCCESS_ROTATION_DEG,
+    SUCCESS_TRANSLATION_PCT,
+    Record,
+    Stats,
+    baseline_method,
+    effective_errors,
+)
+
 #: Errors are drawn no lower than this on the log axes of the plot.
 PLOT_FLOOR = 1e-4
-
-Record = dict[str, Any]
-Stats = dict[str, Any]
-
-
-def is_success(record: Record) -> bool:
-    """Whether the estimate returned within the success thresholds."""
-    return (
-        not record["failed"]
-        and record["rotation_deg"] <= SUCCESS_ROTATION_DEG
-        and record["translation_pct"] <= SUCCESS_TRANSLATION_PCT
-    )
-
-
-def effective_errors(record: Record) -> tuple[float, float, float]:
-    """(rotation deg, translation %, SPEED) after the estimate; the initial ones if it failed."""
-    if record["failed"]:
-        return (
-            record["initial_rotation_deg"],
-            record["initial_translation_pct"],
-            record["initial_speed_score"],
-        )
-    return record["rotation_deg"], record["translation_pct"], record["speed_score"]
-
-
-def _pct(values: Iterable[float], q: float) -> float | None:
-    a = np.asarray([v for v in values if v is not None], dtype=np.float64)
-    return float(np.percentile(a, q)) if a.size else None
-
-
-def _mean(values: Iterable[float]) -> float | None:
-    a = np.asarray([v for v in values if v is not None], dtype=np.float64)
-    return float(a.mean()) if a.size else None
-
-
-def method_stats(records: list[Record]) -> Stats:
-    """Accuracy and cost statistics of one group of records (one method, one band, ...)."""
-    errs = np.array([effective_errors(r) for r in records], dtype=np.float64).reshape(-1, 3)
-    returned = [r for r in records if not r["failed"]]
-    return {
-        "cases": len(records),
-        "successes": sum(is_success(r) for r in records),
-        "success_rate": sum(is_success(r) for r in records) / len(records) if records else None,
-        "failures": len(records) - len(returned),
-        "failure_codes": dict(Counter(r["error_code"] for r in records if r["failed"])),
-        "converged": sum(bool(r.get("converged")) for r in returned),
-        "rotation_deg_median": _pct(errs[:, 0], 50),
-        "rotation_deg_p90": _pct(errs[:, 0], 90),
-        "translation_pct_median": _pct(errs[:, 1], 50),
-        "translation_pct_p90": _pct(errs[:, 1], 90),
-        "speed_score_median": _pct(errs[:, 2], 50),
-        "iterations_median": _pct((r["iterations"] for r in returned), 50),
-        "renders_median": _pct((r["renders"] for r in returned), 50),
-        "renders_mean": _mean(r["renders"] for r in returned),
-        "seconds_median": _pct((r["seconds"] for r in records), 50),
-        "seconds_mean": _mean(r["seconds"] for r in records),
-        "seconds_p90": _pct((r["seconds"] for r in records), 90),
-    }
-
-
-RATIO_KEYS = {
-    "renders_x": "renders_median",
-    "seconds_x": "seconds_median",
-    "rotation_x": "rotation_deg_median",
-    "translation_x": "translation_pct_median",
-}
-
-
-def add_ratios(rows: dict[str, Stats], baseline: str) -> None:
-    """Add method ÷ baseline ratios (RATIO_KEYS) to every row of one group, in place."""
-    base = rows.get(baseline)
-    for stats in rows.values():
-        for name, key in RATIO_KEYS.items():
-            b = base.get(key) if base else None
-            v = stats.get(key)
-            stats[name] = v / b if v is not None and b else None
-
-
-def group_summary(
-    records: list[Record], methods: list[str], key: Callable[[Record], Any]
-) -> list[dict[str, Any]]:
-    """Per group (in first-seen order of ``key``), the stats of every method, with ratios."""
-    groups: dict[Any, list[Record]] = {}
-    for r in records:
-        groups.setdefault(key(r), []).append(r)
-    baseline = baseline_method(methods)
-    out = []
-    for group, members in groups.items():
-        rows = {m: method_stats([r for r in members if r["method"] == m]) for m in methods}
-        add_ratios(rows, baseline)
-        out.append({"group": group, "baseline": baseline, "methods": rows})
-    return out
-
-
-def summarize(records: list[Record], methods: list[str]) -> dict[str, Any]:
-    """Summary per band, per model and band, and over everything."""
-    return {
-        "success_rotation_deg": SUCCESS_ROTATION_DEG,
-        "success_translation_pct": SUCCESS_TRANSLATION_PCT,
-        "by_band": group_summary(records, methods, lambda r: r["band"]),
-        "by_model_band": group_summary(records, methods, lambda r: f"{r['model']} b{r['band']:g}"),
-        "overall": group_summary(records, methods, lambda r: "all"),
-    }
 
 
 def _num(v: float | None, unit: str = "") -> str:
@@ -204,30 +92,83 @@ def model_table(summary: dict[str, Any]) -> str:
     return head + rows
 
 
-def baseline_method(methods: list[str]) -> str:
-    """The row ratios are taken against: ``default`` when it was run, else the first."""
-    return "default" if "default" in methods else methods[0]
-
-
 def markdown(summary: dict[str, Any], config: dict[str, Any], env: dict[str, Any]) -> str:
-    """The whole bench.md: how it was run, the tables per band and per model."""
+    """The whole bench.md: how it was run, the tables per band and per model, and the
+    robustness tables per reference class when the suite had any."""
     machine = f"{env['cpu_model']}, {env['cpus_available']} CPUs available"
-    return (
+    parts = [
         "## proxpose bench\n\n"
         f"`{env['command']}`  \n"
         f"{env['started_at']} · commit `{env['git_commit']}` · Mitsuba `{env['variant']}` · "
         f"{machine}  \n"
-        f"Models {', '.join(config['models'])}; {config['cases']} case(s) per model and band; "
+        f"Models {', '.join(config['models'])}; {config['cases']} case(s) per model and "
+        f"{'class' if summary['by_reference'] else 'band'}; "
         f"{config['size_px']}×{config['size_px']} px; offsets `{config['offsets']}`; "
         f"seed {config['seed']}.\n\n"
         f"Success: ≤ {SUCCESS_ROTATION_DEG:g}° and ≤ {SUCCESS_TRANSLATION_PCT:g} % of range. "
         "Errors: rotation in degrees, translation in % of range, over all cases (a failed "
         "estimate counts with its initial offset). Iterations, renders and seconds: medians. "
-        f"× columns: ratio to `{baseline_method(config['methods'])}` "
-        "(medians).\n\n"
-        f"{band_tables(summary)}\n"
-        f"### Per model (successes · median rotation error)\n\n{model_table(summary)}"
-    )
+        f"× columns: ratio to `{baseline_method(config['methods'])}` (medians).\n\n"
+    ]
+    if summary["by_band"]:
+        parts.append(
+            f"{band_tables(summary)}\n"
+            f"### Per model (successes · median rotation error)\n\n{model_table(summary)}"
+        )
+    if summary["by_reference"]:
+        parts.append(robustness_tables(summary))
+    return "".join(parts)
+
+
+ROBUST_HEADER = (
+    "| method | success | rot. median | rot. p90 | transl. median | transl. p90 "
+    "| drift rot. median | drift rot. p90 | drift transl. median | error/σ median | ≤ 3σ "
+    "| s / estimate | rot. × |\n"
+    "|---|---|---|---|---|---|---|---|---|---|---|---|---|\n"
+)
+
+
+def robust_row(method: str, s: Stats) -> str:
+    """One Markdown row of :data:`ROBUST_HEADER`."""
+    rate = "—" if s["success_rate"] is None else f"{100 * s['success_rate']:.0f} %"
+    within = s["rotation_within_3_sigma"]
+    cells = [
+        f"`{method}`",
+        f"{rate} ({s['successes']}/{s['cases']})",
+        _num(s["rotation_deg_median"], "°"),
+        _num(s["rotation_deg_p90"], "°"),
+        _num(s["translation_pct_median"], " %"),
+        _num(s["translation_pct_p90"], " %"),
+        _num(s["drift_rotation_deg_median"], "°"),
+        _num(s["drift_rotation_deg_p90"], "°"),
+        _num(s["drift_translation_pct_median"], " %"),
+        _num(s["rotation_sigmas_median"]),
+        "—" if within is None else f"{100 * within:.0f} %",
+        _num(s["seconds_median"]),
+        _ratio(s["rotation_x"]),
+    ]
+    return "| " + " | ".join(cells) + " |\n"
+
+
+def robustness_tables(summary: dict[str, Any]) -> str:
+    """A table per class group (tuned, held out) and per reference class, rows = methods."""
+    from worker.bench.references import REFERENCE_CLASSES
+
+    parts = [
+        "### Robustness: references made with other physics\n\n"
+        "Every estimate runs twice: from the case's initial guess (the error columns) and from "
+        "the true pose (drift: how far it walks away from the truth, the bias). error/σ: the "
+        "rotation error over the reported 1-σ (RMS over the axes); ≤ 3σ: the share of errors "
+        "within three of them. *Tuned* classes were looked at while developing the estimator; "
+        "*held out* ones were not.\n"
+    ]
+    for group in summary["by_reference_kind"] + summary["by_reference"]:
+        name = group["group"]
+        cls = REFERENCE_CLASSES.get(name)
+        title = f"Class `{name}`: {cls.description}" if cls else f"All {name} classes"
+        rows = "".join(robust_row(m, s) for m, s in group["methods"].items())
+        parts.append(f"\n#### {title}\n\n{ROBUST_HEADER}{rows}")
+    return "".join(parts)
 
 
 def plot_error_vs_offset(records: list[Record], methods: list[str], path: str) -> None:

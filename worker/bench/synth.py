@@ -130,16 +130,30 @@ def make_case(
     spec: CaseSpec,
     seed: int,
     options: EstimateOptions | None = None,
+    reference: str = "standard",
 ) -> Case:
-    """One seeded case: reference image, request (with ground truth) and the true pose."""
+    """One seeded case: reference image, request (with ground truth) and the true pose.
+
+    ``reference`` is "standard" (the default suite's renderer setup, :func:`render_reference`)
+    or a class of :mod:`worker.bench.references`; for those the truth, the sun and the initial
+    guess depend on the seed alone, so every class of one seed poses the same problem.
+    """
     rng = np.random.default_rng(seed)
     cam = PinholeCamera.from_schema(camera)
     R, t = draw_truth(model, cam, spec, rng)
     sun = draw_sun(rng)
-    sun_true = perturb_direction(sun, spec.sun_error_deg, rng)
-    reference = render_reference(model, cam, R, t, sun_true, spec, rng)
-    R0 = R @ axis_angle_to_matrix(random_unit(rng), np.radians(spec.offset_deg))
-    t0 = t + random_unit(rng) * spec.offset_frac * float(np.linalg.norm(t))
+    if reference == "standard":
+        sun_true = perturb_direction(sun, spec.sun_error_deg, rng)
+        image = render_reference(model, cam, R, t, sun_true, spec, rng)
+        R0, t0 = _initial_guess(R, t, spec, rng)
+    else:
+        from worker.bench.references import REFERENCE_CLASSES, render_class_reference
+
+        cls = REFERENCE_CLASSES[reference]
+        sun_true = perturb_direction(sun, cls.sun_error_deg, rng)
+        R0, t0 = _initial_guess(R, t, spec, rng)
+        render_rng = np.random.default_rng([seed, 1])
+        image = render_class_reference(model, cam, R, t, sun_true, cls, render_rng)
     request = EstimateRequest(
         camera=camera,
         initial_pose=pose_json(R0, t0),
@@ -147,4 +161,13 @@ def make_case(
         options=options or EstimateOptions(),
         ground_truth=pose_json(R, t),
     )
-    return Case(reference, request, R, t, sun_true)
+    return Case(image, request, R, t, sun_true)
+
+
+def _initial_guess(
+    R: Array, t: Array, spec: CaseSpec, rng: np.random.Generator
+) -> tuple[Array, Array]:
+    """The truth rotated by spec.offset_deg about a random axis and moved by spec.offset_frac of
+    the range in a random direction."""
+    R0 = R @ axis_angle_to_matrix(random_unit(rng), np.radians(spec.offset_deg))
+    return R0, t + random_unit(rng) * spec.offset_frac * float(np.linalg.norm(t))

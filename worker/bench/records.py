@@ -1,0 +1,77 @@
+"""Bench records: what one estimate of one case and method left, as plain JSON-ready data."""
+
+from __future__ import annotations
+
+import math
+from typing import Any
+
+from schemas.estimate import EstimateResult
+
+
+def failure(code: str, exc: Exception) -> dict[str, Any]:
+    return {
+        "failed": True,
+        "error_code": code,
+        "error": f"{type(exc).__name__}: {exc}",
+        "rotation_deg": None,
+        "translation_pct": None,
+        "translation": None,
+        "speed_score": None,
+        "iterations": None,
+        "renders": None,
+    }
+
+
+def _calibration(result: EstimateResult) -> dict[str, Any]:
+    """The reported 1-σ (RMS over the axes: the expected size of the error) and how many σ the
+    actual errors are."""
+    cov, err = result.covariance, result.errors
+    if cov is None or err is None:
+        return {"sigma_rotation_deg": None, "sigma_translation": None,
+                "rotation_sigmas": None, "translation_sigmas": None}  # fmt: skip
+    s_rot = math.sqrt(sum(s * s for s in cov.sigma_rotation_deg))
+    s_t = math.sqrt(sum(s * s for s in cov.sigma_translation))
+    return {
+        "sigma_rotation_deg": s_rot,
+        "sigma_translation": s_t,
+        "rotation_sigmas": err.rotation_deg / s_rot if s_rot > 0 else None,
+        "translation_sigmas": err.translation / s_t if s_t > 0 else None,
+    }
+
+
+def outcome(result: EstimateResult) -> dict[str, Any]:
+    err = result.errors
+    assert err is not None  # every bench request carries the ground truth
+    return {
+        "failed": False,
+        "error_code": None,
+        "error": None,
+        "rotation_deg": err.rotation_deg,
+        "translation_pct": err.translation_pct_of_range,
+        "translation": err.translation,
+        "speed_score": err.speed_score,
+        "iterations": result.iterations,
+        "renders": result.renders,
+        "engine_seconds": result.seconds,
+        "converged": result.converged,
+        "reason": result.reason,
+        "features": result.features,
+        "rms_residual_px": result.rms_residual_px,
+        "alignment_score": result.alignment_score,
+        "shading_normals": result.shading_normals,
+        **_calibration(result),
+        "timings_s": result.timings_s,
+        "history": [
+            {
+                "stage": h.stage,
+                "cost_px2": h.cost,
+                "features": h.features,
+                "renders": h.renders,
+                "accepted": h.accepted,
+                "seconds": h.seconds,
+                "rotation_deg": h.rotation_error_deg,
+                "translation": h.translation_error,
+            }
+            for h in result.history
+        ],
+    }
