@@ -83,21 +83,36 @@ def to_grey(image: FloatImage) -> FloatImage:
     """
     if image.ndim == 2:
         return image.astype(np.float32, copy=False)
-    return image[..., :3].mean(axis=2, dtype=np.float32)
+    import cv2
+
+    rgb = np.ascontiguousarray(image[..., :3], dtype=np.float32)
+    grey = cv2.transform(rgb, np.full((1, 3), 1.0 / 3.0, dtype=np.float32))  # ~10× np.mean
+    return grey.reshape(image.shape[:2])
+
+
+def _pow(x: NDArray[np.float32], exponent: float) -> NDArray[np.float32]:
+    """x ** exponent: OpenCV's (several times faster) for images, numpy's for the rest."""
+    if x.ndim == 2 or (x.ndim == 3 and x.shape[2] <= 4):
+        import cv2
+
+        return cv2.pow(np.ascontiguousarray(x), exponent)
+    return np.power(x, np.float32(exponent))
 
 
 def srgb_encode(linear: NDArray[np.floating]) -> FloatImage:
     """sRGB transfer function of linear values clipped to [0, 1]."""
     x = np.clip(linear, 0.0, 1.0).astype(np.float32)
-    return np.where(x <= 0.0031308, 12.92 * x, 1.055 * np.power(x, 1 / 2.4) - 0.055).astype(
-        np.float32
-    )
+    y = 1.055 * _pow(x, 1.0 / 2.4) - 0.055
+    y = np.where(x <= 0.0031308, 12.92 * x, y)
+    return y.astype(np.float32, copy=False)
 
 
 def srgb_decode(encoded: NDArray[np.floating]) -> FloatImage:
     """Inverse sRGB transfer function, [0, 1] → linear [0, 1]."""
     x = np.clip(encoded, 0.0, 1.0).astype(np.float32)
-    return np.where(x <= 0.04045, x / 12.92, np.power((x + 0.055) / 1.055, 2.4)).astype(np.float32)
+    y = _pow((x + 0.055) / 1.055, 2.4)
+    y = np.where(x <= 0.04045, x / 12.92, y)
+    return y.astype(np.float32, copy=False)
 
 
 def to_display(linear: FloatImage) -> FloatImage:
