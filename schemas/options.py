@@ -33,6 +33,7 @@ METHOD_PRESETS: dict[str, dict[str, Any]] = {
         "robust": False,
         "fit_sun": False,
         "shading_normals": "file",
+        "pyramid": False,
         "refine_passes": 1,
         "max_iterations": 10,
     },
@@ -137,6 +138,12 @@ class EstimateOptions(BaseModel):
         "the coarse stage, render both and keep the one that explains the image better (a "
         "model tessellated differently from the surface that made the image shades "
         "differently, and shading moves features).",
+    )
+    pyramid: bool = Field(
+        default=True,
+        description="Coarse to fine: the coarse stage and every refinement pass but the last "
+        "work on the image reduced by a power of two (short side ≥ 240 px, target ≥ 120 px "
+        "across), the last pass at full resolution.",
     )
     coarse: Literal["pnp", "none"] = Field(
         default="pnp",

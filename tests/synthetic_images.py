@@ -84,16 +84,25 @@ class StubRenderer:
     """Renders ``draw(R, t, scale)`` (linear grey, float32) and counts the renders like the
     real renderer; no Mitsuba. The default draws a blank sky."""
 
-    def __init__(self, camera: PinholeCamera, draw=None, model: StubModel | None = None) -> None:  # type: ignore[no-untyped-def]
+    def __init__(  # type: ignore[no-untyped-def]
+        self,
+        camera: PinholeCamera,
+        draw=None,
+        model: StubModel | None = None,
+        scales: tuple[float, ...] = (1.0,),
+    ) -> None:
         self.camera = camera
         self.model = model or StubModel()
         self.stats = RenderStats()
         self.lighting = LightingSpec((0.0, -0.6, -0.8), 3.0, 0.02)
-        self.plans = {1.0: None}
+        self.plans = {s: None for s in scales}
         self._draw = draw or (lambda R, t, scale: np.zeros((camera.height, camera.width)))
 
     def set_lighting(self, lighting: LightingSpec) -> None:
         self.lighting = lighting
+
+    def camera_at(self, scale: float) -> PinholeCamera:
+        return self.camera if scale == 1.0 else self.camera.scaled(scale)
 
     def render(
         self, R: NDArray, t: NDArray, scale: float = 1.0, spp: int = 1, seed: int = 0

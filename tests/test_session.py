@@ -68,7 +68,7 @@ def test_a_cancel_stops_the_next_render() -> None:
     with pytest.raises(EstimationCancelled):
         session.render_view(R0, T0 + 1.0)
     with pytest.raises(EstimationCancelled):
-        session.render_perturbed(R0, T0, 0.5, seed=1)
+        session.render_perturbed(R0, T0, seed=1)
 
 
 def test_parts_are_timed_and_the_reference_is_described_once() -> None:

@@ -38,8 +38,8 @@ def session(**options: object) -> SimpleNamespace:
     another camera: 0.8× the light, gamma 2 instead of sRGB) and the options."""
     reference = (0.8 * scene(SHIFT)) ** 0.5
     return SimpleNamespace(
-        reference=reference,
-        reference_grey=reference,
+        ref_image=reference,
+        ref_grey=reference,
         options=EstimateOptions(**options).resolved(),  # type: ignore[arg-type]
     )
 

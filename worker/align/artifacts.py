@@ -37,12 +37,19 @@ def _stretch(grey: FloatImage) -> FloatImage:
     return np.clip(grey / top, 0.0, 1.0)
 
 
+def _to_size(image: FloatImage, shape: tuple[int, ...]) -> FloatImage:
+    """``image`` resampled to the reference's (H, W): a view rendered at a coarse level."""
+    if image.shape[:2] == shape[:2]:
+        return image
+    return cv2.resize(image, (shape[1], shape[0]), interpolation=cv2.INTER_LINEAR)
+
+
 def overlay(reference: FloatImage, view: RenderedView) -> bytes:
     """Reference in red, render in blue (RGB PNG), each stretched black to white."""
     reference_grey = to_grey(reference)
     black = float(np.percentile(reference_grey, 50.0))  # the (noisy) sky fills most frames
     ref = _stretch(np.clip(reference_grey - black, 0.0, None))
-    ren = _stretch(view.grey)
+    ren = _stretch(_to_size(view.grey, ref.shape))
     rgb = np.stack([ref, np.zeros_like(ref), ren], axis=-1)
     return encode_png(rgb)
 

@@ -50,7 +50,7 @@ def run_moment_alignment(session: Session) -> bool:
     better with the reference (alignment score); returns whether it was kept.
     """
     view = session.current_view()
-    ref = session.reference_grey
+    ref = session.ref_grey
     sky = float(np.median(ref))
     noise = 1.4826 * float(np.median(np.abs(ref - sky)))
     level_ref = sky + max(6.0 * noise, 0.05 * (float(np.percentile(ref, 99.9)) - sky))
@@ -93,7 +93,7 @@ def run_pnp_stage(
     for _ in range(min(max_iterations, session.iterations_left)):
         view = session.current_view()
         with session.timed("match"):
-            score = alignment_score(session.reference_grey, view.grey)
+            score = alignment_score(session.ref_grey, view.grey)
         if best is not None and _clearly_worse(score, best[1]):
             session.accept(best[0])
             session.record("coarse", best[2], 0.0, 0.0, False, 0)
@@ -127,7 +127,7 @@ def _pnp_from(session: Session, view: RenderedView) -> PnPResult | None:
     """Match the reference to ``view``, cast rays through the render's features, solve PnP."""
     opts = session.options
     with session.timed("match"):
-        pair = normalise_pair(session.reference_grey, view.grey)
+        pair = normalise_pair(session.ref_grey, view.grey)
         n = max(opts.max_features, 300)
         matches = match_features(
             session.reference_described(opts.detector, n),
@@ -140,7 +140,7 @@ def _pnp_from(session: Session, view: RenderedView) -> PnPResult | None:
     if len(matches) < max(opts.min_features, 8):
         return None
     with session.timed("pnp"):
-        X, hit = session.renderer.raycast(view.R, view.t, matches.render_pts)
+        X, hit = session.renderer.raycast(view.R, view.t, matches.render_pts, session.level)
         return solve_pnp(
             session.camera, X[hit], matches.ref_pts[hit], view.R, view.t, seed=opts.seed
         )

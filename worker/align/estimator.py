@@ -24,6 +24,7 @@ from worker.align.coarse import (
     run_pnp_stage,
 )
 from worker.align.lm import covariance
+from worker.align.pyramid import LevelPlan, plan_levels
 from worker.align.refine import run_lm_stage
 from worker.align.renderers import get_renderer, lighting_spec, texture_level
 from worker.align.session import CancelCheck, ProgressCallback, RenderedView, Session
@@ -38,8 +39,6 @@ from worker.engine.posemath import pose_from_schema, pose_to_schema
 
 #: Refinement passes added after one that ended 'slow' (see worker.align.refine).
 MAX_EXTRA_PASSES = 2
-#: Shortest side of a perturbation render, px.
-MIN_PERTURBATION_SIDE_PX = 256
 #: Fraction of a coverage grid the target must cover at the initial pose.
 MIN_COVERAGE = 1e-3
 #: Alignment score (NCC of the final render with the reference) a converged estimate needs:
@@ -57,13 +56,6 @@ class Estimate:
     views: dict[str, RenderedView]
 
 
-def perturbation_scale(requested: float, camera: PinholeCamera) -> float:
-    """The perturbation renders' scale: as requested, but never below MIN_PERTURBATION_SIDE_PX
-    on the short side (a small image halved leaves the tracker too little to learn from)."""
-    floor = MIN_PERTURBATION_SIDE_PX / min(camera.width, camera.height)
-    return min(1.0, round(max(requested, floor), 3))
-
-
 def estimate(
     model: LoadedModel,
     reference: FloatImage,
@@ -76,15 +68,15 @@ def estimate(
     opts = request.options.resolved()
     camera = PinholeCamera.from_schema(request.camera)
     check_size(reference, camera.width, camera.height)
-    scale = perturbation_scale(opts.perturbation_scale, camera)
-    scales = (1.0,) if scale == 1.0 else (1.0, scale)
     R0, t0 = pose_from_schema(request.initial_pose)
+    pyramid = opts.pyramid and opts.refine_features != "none"  # the PnP baseline stays as is
+    plan = plan_levels(camera, target_px(model, camera, R0, t0), opts.perturbation_scale, pyramid)
     renderer_for = partial(
         get_renderer,
         model,
         camera,
         lighting_spec(request.lighting),
-        scales,
+        plan.scales,
         opts.spp,
         texture_level(model, camera, R0, t0),
     )
@@ -105,18 +97,28 @@ def estimate(
         on_iteration=on_iteration,
         should_cancel=should_cancel,
         rng=np.random.default_rng(opts.seed),
+        perturbation_scales=plan.perturbation,
     )
-    reason = _run_pipeline(session, renderer_for)
+    reason = _run_pipeline(session, renderer_for, plan)
+    session.set_level(1.0)
     session.views["final"] = session.current_view()
     session.views.setdefault("second", session.views["final"])
     result = _result(session, reason, opts, R0, t0, truth, start, session.renders)
     return Estimate(result, session.reference, session.views)
 
 
-def _run_pipeline(session: Session, renderer_for: RendererFor) -> StopReason:
+def target_px(model: LoadedModel, camera: PinholeCamera, R: np.ndarray, t: np.ndarray) -> float:
+    """Apparent diameter of the model's bounding sphere at pose (R, t), full-resolution px."""
+    d = float(np.linalg.norm(R @ model.centre + t))
+    return 2.0 * 0.5 * (camera.fx + camera.fy) * model.radius / max(d, 1e-12)
+
+
+def _run_pipeline(session: Session, renderer_for: RendererFor, plan: LevelPlan) -> StopReason:
     opts = session.options
     coarse_ok = False
     pnp_reason: StopReason | None = None
+    if opts.refine_features != "none":
+        session.set_level(plan.coarse)
     if opts.coarse == "pnp":
         run_moment_alignment(session)
         alone = opts.refine_features == "none"
@@ -133,9 +135,18 @@ def _run_pipeline(session: Session, renderer_for: RendererFor) -> StopReason:
             return pnp_reason or "max_iterations"
     if opts.refine_features == "klt" and not coarse_ok:
         run_lm_stage(session, "matches", "coarse", handover_step=COARSE_HANDOVER_STEP)
+    # the first pass at its level, unless it is the only one (the last: at full resolution)
+    session.set_level(plan.first_pass if opts.refine_passes > 1 else 1.0)
     if opts.shading_normals == "auto":
         choose_shading(session, renderer_for)
-    outcome = run_lm_stage(session, opts.refine_features, "refine")
+    try:
+        outcome = run_lm_stage(session, opts.refine_features, "refine")
+    except TooFewFeaturesError:
+        if session.level == 1.0:
+            raise
+        session.set_level(1.0)  # too small at the coarse level: the first pass at full size
+        outcome = run_lm_stage(session, opts.refine_features, "refine")
+    session.set_level(1.0)
     passes = 1
     # A pass that ended 'slow' (its Jacobian overstates the motion) earns one more, up to
     # MAX_EXTRA_PASSES beyond those asked for.

@@ -60,13 +60,16 @@ def perturbation_sizes(session: Session, shrink: float = 1.0) -> tuple[float, Ar
 def learn_at_pose(session: Session, points: Array, normals: Array | None = None) -> LearnedJacobian:
     """Render N_s perturbations around the session's pose and learn J for ``points`` (k, 2).
 
-    ``points`` are feature positions in the full-resolution render at the current pose. They
-    are tracked from a base render into each perturbed render at the perturbation scale (KLT
-    for 2-D features; for edge points, those with a unit normal in ``normals`` and not NaN, the
-    shift across the edge, stored as s·n); E holds the displacements in full-resolution pixels.
+    ``points`` are feature positions in the render at the current pose and level. They are
+    tracked from a base render into each perturbed render at the level's perturbation scale
+    (KLT for 2-D features; for edge points, those with a unit normal in ``normals`` and not NaN,
+    the shift across the edge, stored as s·n); E holds the displacements in the level's pixels.
     """
     opts = session.options
-    scale = min(s for s in session.renderer.plans)  # the perturbation scale chosen for it
+    # Perturbation-render pixels per level pixel, per axis (sizes are rounded to whole px).
+    level_cam = session.camera
+    pert_cam = session.renderer.camera_at(session.perturbation_scale)
+    scale = np.array([pert_cam.width / level_cam.width, pert_cam.height / level_cam.height])
     k = len(points)
     axis, angle = matrix_to_axis_angle(session.R)
     centre_axis = axis if angle > 1e-6 else None
@@ -83,7 +86,7 @@ def learn_at_pose(session: Session, points: Array, normals: Array | None = None)
             np.radians(opts.axis_cone_deg),
         )
         base_seed = opts.seed + 1000 * (attempt + 1)
-        base = session.render_perturbed(session.R, session.t, scale, base_seed)
+        base = session.render_perturbed(session.R, session.t, base_seed)
         renders += 1
         white = float(np.percentile(base, 99.9)) or 1.0
         base8 = smooth(to_u8(base, white))
@@ -91,7 +94,7 @@ def learn_at_pose(session: Session, points: Array, normals: Array | None = None)
         E = np.full((2 * k, opts.n_samples), np.nan)
         for i in range(opts.n_samples):
             R_i, t_i = apply_increment(session.R, session.t, B[:, i])
-            img = session.render_perturbed(R_i, t_i, scale, base_seed + i + 1)
+            img = session.render_perturbed(R_i, t_i, base_seed + i + 1)
             renders += 1
             with session.timed("track"):
                 d, ok = _displacements(base, base8, img, white, pts_s, normals)
@@ -154,7 +157,7 @@ def analytic_jacobian(
     the component across the edge, like their learned rows. No render is made: this is the
     'fast' method's alternative to docs/method.md steps 2–4, not the paper's learned Jacobian.
     """
-    X, hit = session.renderer.raycast(session.R, session.t, points)
+    X, hit = session.renderer.raycast(session.R, session.t, points, session.level)
     k = len(points)
     J = np.full((2 * k, 6), np.nan)
     cam = session.camera

@@ -12,6 +12,7 @@ from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass, field
 
+import cv2
 import numpy as np
 from numpy.typing import NDArray
 
@@ -33,12 +34,13 @@ CancelCheck = Callable[[], bool]
 
 @dataclass
 class RenderedView:
-    """A full-resolution render at a pose: linear RGB and display-encoded grey."""
+    """A render at a pose and a pyramid level: linear RGB and display-encoded grey."""
 
     R: Array
     t: Array
     linear: FloatImage
     grey: FloatImage
+    level: float = 1.0  # image scale relative to the reference (1 = full resolution)
 
 
 @dataclass(frozen=True)
@@ -63,6 +65,11 @@ class LinearFit:
 
 @dataclass
 class Session:
+    """One estimate's state. The stages work at a pyramid ``level`` (an image scale: 1 = the
+    reference's resolution); ``camera``, ``ref_image``, ``ref_grey`` and every render are at
+    that level, so feature positions and residuals are in the level's pixels, while the pose
+    is the same at every level."""
+
     renderer: Renderer
     reference: FloatImage  # as given: [0, 1], grey (H, W) or colour (H, W, 3)
     reference_grey: FloatImage  # its channel mean, [0, 1]
@@ -83,9 +90,13 @@ class Session:
     requested_lighting: LightingSpec = field(init=False)
     #: Renders made by this session (the renderer may be shared, or swapped mid-estimate).
     renders: int = 0
+    #: The working level, and the scale of the perturbation renders at each level (the
+    #: renderer has a sensor for every one of them).
+    level: float = 1.0
+    perturbation_scales: dict[float, float] = field(default_factory=dict)
+    _pyramid: dict[float, tuple[FloatImage, FloatImage]] = field(default_factory=dict)
     _renders_at_last_record: int = 0
-    _ref_u8: NDArray[np.uint8] | None = None
-    _described: dict[tuple[str, int], Described] = field(default_factory=dict)
+    _described: dict[tuple[str, int, float], Described] = field(default_factory=dict)
     _time_at_last_record: float = field(default_factory=time.perf_counter)
 
     def __post_init__(self) -> None:
@@ -93,7 +104,42 @@ class Session:
 
     @property
     def camera(self) -> PinholeCamera:
-        return self.renderer.camera
+        """The camera at the working level."""
+        return self.renderer.camera_at(self.level)
+
+    @property
+    def ref_image(self) -> FloatImage:
+        """The reference at the working level (area-averaged to the level's camera)."""
+        return self._at_level()[0]
+
+    @property
+    def ref_grey(self) -> FloatImage:
+        """The reference's grey at the working level."""
+        return self._at_level()[1]
+
+    def _at_level(self) -> tuple[FloatImage, FloatImage]:
+        if self.level == 1.0:
+            return self.reference, self.reference_grey
+        if self.level not in self._pyramid:
+            cam = self.camera
+            size = (cam.width, cam.height)
+            image = cv2.resize(self.reference, size, interpolation=cv2.INTER_AREA)
+            grey = cv2.resize(self.reference_grey, size, interpolation=cv2.INTER_AREA)
+            self._pyramid[self.level] = (image, grey)
+        return self._pyramid[self.level]
+
+    @property
+    def perturbation_scale(self) -> float:
+        """The scale of the perturbation renders at the working level."""
+        default = min(s for s in self.renderer.plans if s <= self.level)
+        return self.perturbation_scales.get(self.level, default)
+
+    def set_level(self, level: float) -> None:
+        """Work at ``level`` from now on (the renderer must have a sensor for it)."""
+        if level not in self.renderer.plans:
+            raise ValueError(f"the renderer has no sensor at scale {level}")
+        if level != self.level:
+            self.level, self.current, self.fit = level, None, None
 
     @property
     def range_(self) -> float:
@@ -117,23 +163,25 @@ class Session:
             self.timings_s[part] += time.perf_counter() - start
 
     def reference_described(self, detector: str, max_features: int) -> dict[str, Described]:
-        """The reference's keypoints and descriptors per detector, computed once.
+        """The reference's keypoints and descriptors per detector at the working level, computed
+        once per level.
 
         Described on the reference stretched to 8 bits by its own levels: SIFT and ORB are
         indifferent to a monotonic tone change, so no render is needed to normalise it.
         """
         kinds = ("sift", "orb") if detector == "both" else (detector,)
-        if self._ref_u8 is None:
-            g = self.reference_grey
-            lo, hi = np.percentile(g, [1.0, 99.9])
-            self._ref_u8 = to_u8(np.clip(g - lo, 0.0, None), max(float(hi - lo), 1e-6))
         out = {}
         for kind in kinds:
-            key = (kind, max_features)
+            key = (kind, max_features, self.level)
             if key not in self._described:
-                self._described[key] = describe(self._ref_u8, kind, max_features)
+                self._described[key] = describe(self._reference_u8(), kind, max_features)
             out[kind] = self._described[key]
         return out
+
+    def _reference_u8(self) -> NDArray[np.uint8]:
+        g = self.ref_grey
+        lo, hi = np.percentile(g, [1.0, 99.9])
+        return to_u8(np.clip(g - lo, 0.0, None), max(float(hi - lo), 1e-6))
 
     def check_cancel(self) -> None:
         if self.should_cancel is not None and self.should_cancel():
@@ -141,27 +189,34 @@ class Session:
 
     # -- rendering -----------------------------------------------------------------------
     def render_view(self, R: Array, t: Array) -> RenderedView:
-        """Full-resolution render at (R, t) with the main spp and the session's fixed seed.
+        """Render at (R, t) at the working level with the main spp and the session's seed.
 
         One seed for every main render keeps render noise from changing between nearby poses,
         so cost comparisons see the pose and not the sampler.
         """
-        linear = self._render(R, t, 1.0, self.options.spp, self.options.seed)
-        view = RenderedView(np.asarray(R), np.asarray(t), linear, render_to_grey(linear))
+        linear = self._render(R, t, self.level, self.options.spp, self.options.seed)
+        grey = render_to_grey(linear)
+        view = RenderedView(np.asarray(R), np.asarray(t), linear, grey, self.level)
         self.views.setdefault("first", view)
         return view
 
     def current_view(self) -> RenderedView:
-        """The render at the current pose (rendered once and kept)."""
-        if self.current is None or not (
-            np.array_equal(self.current.R, self.R) and np.array_equal(self.current.t, self.t)
+        """The render at the current pose and level (rendered once and kept)."""
+        if (
+            self.current is None
+            or self.current.level != self.level
+            or not (
+                np.array_equal(self.current.R, self.R) and np.array_equal(self.current.t, self.t)
+            )
         ):
             self.current = self.render_view(self.R, self.t)
         return self.current
 
-    def render_perturbed(self, R: Array, t: Array, scale: float, seed: int) -> FloatImage:
-        """Display-encoded grey render for Jacobian learning (perturbation scale and spp)."""
-        return render_to_grey(self._render(R, t, scale, self.options.perturbation_spp, seed))
+    def render_perturbed(self, R: Array, t: Array, seed: int) -> FloatImage:
+        """Display-encoded grey render for Jacobian learning (at the level's perturbation
+        scale, with the perturbation spp)."""
+        spp = self.options.perturbation_spp
+        return render_to_grey(self._render(R, t, self.perturbation_scale, spp, seed))
 
     def _render(self, R: Array, t: Array, scale: float, spp: int, seed: int) -> FloatImage:
         self.check_cancel()

@@ -29,12 +29,12 @@ def choose_shading(session: Session, renderer_for: RendererFor) -> str:
         return current.shading
     other = renderer_for("faceted" if current.shading == "file" else "file")
     with session.timed("match"):
-        score_now = alignment_score(session.reference_grey, session.current_view().grey)
+        score_now = alignment_score(session.ref_grey, session.current_view().grey)
     here = session.current_view()
     session.use_renderer(other)
     candidate = session.current_view()
     with session.timed("match"):
-        score_other = alignment_score(session.reference_grey, candidate.grey)
+        score_other = alignment_score(session.ref_grey, candidate.grey)
     if score_other <= score_now:
         session.use_renderer(current)
         session.current = here

@@ -61,12 +61,12 @@ class TrackedFeatures:
     """Corners and edge points of the reference, found in each render by tracking."""
 
     def __init__(self, session: Session, view: RenderedView) -> None:
-        pair = normalise_pair(session.reference_grey, view.grey)
+        pair = normalise_pair(session.ref_grey, view.grey)
         mask = content_mask(pair.ref_smooth) & content_mask(pair.render_smooth)
         # The reference's tone curve is mapped onto the render's first: contrast normalisation
         # removes local gain and offset but not a different gamma, which shifts every blurred
         # edge towards its dark side.
-        ref_linear = srgb_decode(reference_on_render_scale(session.reference, view.linear))
+        ref_linear = srgb_decode(reference_on_render_scale(session.ref_image, view.linear))
         # Equal sharpness too: a corner blurred differently in the two images sits elsewhere.
         # Blur acts on light, so it is measured and applied in linear units, then encoded.
         self.blur_render = relative_blur(ref_linear, to_grey(view.linear))
@@ -144,7 +144,7 @@ class MatchedFeatures:
 
     def __init__(self, session: Session, view: RenderedView) -> None:
         opts = session.options
-        pair = normalise_pair(session.reference_grey, view.grey)
+        pair = normalise_pair(session.ref_grey, view.grey)
         m = match_features(
             pair.ref,
             pair.render,

@@ -1,0 +1,71 @@
+"""Coarse to fine: at which image scales the stages of an estimate work.
+
+A render costs about its pixel count, and so do the image operations around it (matching,
+contrast normalisation, tracking). The coarse stage and the first refinement pass only have to
+bring the pose within the last pass's reach, so they work on a reduced image: the reference
+area-averaged onto the camera scaled exactly (principal point and skew included, see
+``PinholeCamera.scaled``), rendered with a sensor of that size. Only the last pass (and any
+pass a 'slow' one earns) works at the reference's resolution. Levels are powers of two, the
+smallest whose short side and target keep a floor: PnP on descriptor matches needs more pixels
+(COARSE_*) than the first refinement pass, which starts within a few tenths of a degree
+(FIRST_PASS_*).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+from worker.engine.camera import PinholeCamera
+
+#: Shortest image side and smallest apparent target diameter of the coarse stage's level, px.
+COARSE_SIDE_PX, COARSE_TARGET_PX = 480, 240
+#: The same for the first refinement pass's level, px.
+FIRST_PASS_SIDE_PX, FIRST_PASS_TARGET_PX = 240, 120
+#: Shortest side of a perturbation render, px (a small image halved leaves the tracker too
+#: little to learn from).
+MIN_PERTURBATION_SIDE_PX = 256
+
+
+@dataclass(frozen=True)
+class LevelPlan:
+    """The levels of the coarse stage and of the first refinement pass (the later passes work
+    at full resolution) and, per level, the scale of its perturbation renders."""
+
+    coarse: float
+    first_pass: float
+    perturbation: dict[float, float]
+
+    @property
+    def scales(self) -> tuple[float, ...]:
+        """Every scale a renderer needs a sensor for, full resolution first."""
+        levels = {1.0, self.coarse, self.first_pass, *self.perturbation.values()}
+        return tuple(sorted(levels, reverse=True))
+
+
+def perturbation_scale(requested: float, level: float, camera: PinholeCamera) -> float:
+    """The perturbation renders' scale at ``level``: ``requested`` of the level, but never
+    below MIN_PERTURBATION_SIDE_PX on the short side, nor above the level itself."""
+    floor = MIN_PERTURBATION_SIDE_PX / min(camera.width, camera.height)
+    return min(level, round(max(requested * level, floor), 3))
+
+
+def level_for(camera: PinholeCamera, target_px: float, side_px: float, across_px: float) -> float:
+    """The smallest power-of-two scale that keeps the short side at ``side_px`` and the target
+    (``target_px`` across at full resolution) at ``across_px``; at most 1."""
+    side = min(camera.width, camera.height)
+    need = max(side_px / side, across_px / max(target_px, 1e-9))
+    return min(1.0, 2.0 ** math.ceil(math.log2(need)))
+
+
+def plan_levels(
+    camera: PinholeCamera, target_px: float, perturbation: float, pyramid: bool
+) -> LevelPlan:
+    """The levels of one estimate (``pyramid`` False: everything at full resolution)."""
+    coarse = first = 1.0
+    if pyramid:
+        coarse = level_for(camera, target_px, COARSE_SIDE_PX, COARSE_TARGET_PX)
+        first = level_for(camera, target_px, FIRST_PASS_SIDE_PX, FIRST_PASS_TARGET_PX)
+    levels = {first, 1.0}  # the levels that learn a Jacobian
+    scales = {lv: perturbation_scale(perturbation, lv, camera) for lv in levels}
+    return LevelPlan(coarse, first, scales)
