@@ -151,7 +151,7 @@ def test_markdown_has_a_row_per_method_and_band() -> None:
         "methods": METHODS,
         "models": ["m"],
         "cases": 1,
-        "size_px": 64,
+        "sizes": [[64, 64]],
         "offsets": "uniform",
     }
     config["seed"] = 0
@@ -170,7 +170,7 @@ def test_markdown_of_an_empty_run() -> None:
         "methods": METHODS,
         "models": [],
         "cases": 1,
-        "size_px": 64,
+        "sizes": [[64, 64]],
         "offsets": "edge",
     }
     config["seed"] = 0
@@ -288,7 +288,7 @@ def test_robustness_summary_groups_by_class_and_kind() -> None:
     assert [g["group"] for g in summary["by_reference"]] == ["faceted", "jpeg"]
     assert {g["group"] for g in summary["by_reference_kind"]} == {"tuned", "held out"}
     config: dict[str, Any] = {"methods": ["default", "pnp"], "models": ["m"], "cases": 1}
-    config |= {"size_px": 64, "offsets": "uniform", "seed": 0}
+    config |= {"sizes": [[64, 64]], "offsets": "uniform", "seed": 0}
     env: dict[str, Any] = {"command": "proxpose bench", "started_at": "now", "variant": "v"}
     env |= {"git_commit": "abc", "cpu_model": "cpu", "cpus_available": 2}
     md = markdown(summary, config, env)
@@ -357,3 +357,33 @@ def test_quick_robustness_bench_reports_drift(tmp_path: Path) -> None:
     assert default["drift_cases"] == 1 and default["drift_rotation_deg_median"] is not None
     md = (tmp_path / "out" / "bench.md").read_text()
     assert "drift rot. median" in md and "#### Class `jpeg`" in md
+
+
+# -- sizes and costs --------------------------------------------------------------------------
+def test_sizes_are_squares_or_width_by_height() -> None:
+    from worker.bench.cli import _sizes
+
+    assert _sizes("512, 1920x1200") == [[512, 512], [1920, 1200]]
+    with pytest.raises(Exception, match="WxH"):
+        _sizes("1920by1200")
+
+
+def test_a_non_square_bench_camera_has_an_off_centre_principal_point() -> None:
+    from worker.bench.cases import bench_camera
+
+    square = bench_camera(512)
+    assert (square.cx, square.cy) == (255.5, 255.5)
+    wide = bench_camera(640, 480)
+    assert wide.fx == pytest.approx(square.fx * 480 / 512)  # the same field on the short side
+    assert wide.cx > 319.5 + 10 and wide.cy < 239.5 - 5
+
+
+def test_costs_are_summarised_per_size() -> None:
+    records = [
+        {**record("default", 0.1, 0.1), "size": size, "render_s": 0.05,
+         "render_equivalents": re, "peak_memory_mb": mb}
+        for size, re, mb in (("512x512", 14.0, 600.0), ("1920x1200", 5.0, 950.0))
+    ]  # fmt: skip
+    groups = {g["group"]: g["methods"]["default"] for g in summarize(records, METHODS)["by_size"]}
+    assert groups["512x512"]["render_equivalents_median"] == 14.0
+    assert groups["1920x1200"]["peak_memory_mb_max"] == 950.0

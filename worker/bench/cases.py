@@ -26,6 +26,7 @@ import numpy as np
 
 from schemas.camera import Camera
 from schemas.options import EstimateOptions
+from worker.bench.costs import full_render_seconds, peak_memory_mb, reset_peak_memory
 from worker.bench.records import failure, outcome
 from worker.bench.synth import Case, CaseSpec, make_case
 from worker.engine.meshes import LoadedModel
@@ -141,11 +142,16 @@ def resolve_models(
     return found, skipped
 
 
-def bench_camera(size_px: int) -> Camera:
-    """A square camera of ``size_px`` with a CAMERA_FOV_DEG field of view, centred."""
-    f = 0.5 * size_px / np.tan(np.radians(0.5 * CAMERA_FOV_DEG))
-    c = 0.5 * (size_px - 1)
-    return Camera(width=size_px, height=size_px, fx=float(f), fy=float(f), cx=c, cy=c)
+def bench_camera(width_px: int, height_px: int | None = None) -> Camera:
+    """A camera with a CAMERA_FOV_DEG field of view across its short side: square and centred
+    (``height_px`` None), or, when it is not square, with its principal point off the centre
+    (3 % of the width right, 2 % of the height up), as calibrated cameras have."""
+    height = width_px if height_px is None else height_px
+    f = 0.5 * min(width_px, height) / np.tan(np.radians(0.5 * CAMERA_FOV_DEG))
+    cx, cy = 0.5 * (width_px - 1), 0.5 * (height - 1)
+    if height != width_px:
+        cx, cy = cx + 0.03 * width_px, cy - 0.02 * height
+    return Camera(width=width_px, height=height, fx=float(f), fy=float(f), cx=cx, cy=cy)
 
 
 @dataclass
@@ -157,7 +163,8 @@ class CaseTask:
     band: float
     band_lo: float
     index: int
-    size_px: int
+    width_px: int
+    height_px: int
     seed: int
     offsets: str
     methods: list[MethodSpec]
@@ -168,11 +175,18 @@ class CaseTask:
     #: "offset": from the case's initial guess; "truth": from the true pose (the drift).
     starts: tuple[str, ...] = ("offset",)
 
+    #: Whether the case id names its size (a suite of several sizes).
+    sized: bool = False
+
+    @property
+    def size(self) -> str:
+        return f"{self.width_px}x{self.height_px}"
+
     @property
     def case_id(self) -> str:
-        if self.reference != "standard":
-            return f"{self.model}-{self.reference}-{self.index:02d}"
-        return f"{self.model}-b{self.band:g}-{self.index:02d}"
+        where = self.reference if self.reference != "standard" else f"b{self.band:g}"
+        size = f"-{self.size}" if self.sized else ""
+        return f"{self.model}-{where}{size}-{self.index:02d}"
 
 
 @dataclass
@@ -193,7 +207,7 @@ def build_case(task: CaseTask, model: LoadedModel) -> tuple[Case, int]:
     rot_deg, frac = draw_offset(
         task.band_lo, task.band, task.offsets, np.random.default_rng(offset_seed)
     )
-    camera, spec = bench_camera(task.size_px), CaseSpec(rot_deg, frac)
+    camera, spec = bench_camera(task.width_px, task.height_px), CaseSpec(rot_deg, frac)
     return make_case(model, camera, spec, ref_seed, reference=task.reference), est_seed
 
 
@@ -209,10 +223,11 @@ def run_case(task: CaseTask, on_record: RecordCallback | None = None) -> CaseOut
         for spec in task.methods
         if (task.model_path, spec.label) not in _warmed
     ]
+    render_s = full_render_seconds(model, case.request)
     records = []
     for start in task.starts:
         started = case if start == "offset" else _from_truth(case)
-        fields = {**_case_fields(task, started), "start": start}
+        fields = {**_case_fields(task, started), "start": start, "render_s": render_s}
         for spec in task.methods:
             record = run_method(model, reference, started, spec, est_seed, fields)
             records.append(record)
@@ -263,7 +278,9 @@ def _case_fields(task: CaseTask, case: Case) -> dict[str, Any]:
         "band": task.band,
         "reference": task.reference,
         "index": task.index,
-        "size_px": task.size_px,
+        "size": task.size,
+        "width_px": task.width_px,
+        "height_px": task.height_px,
         "initial_rotation_deg": rotation_error_deg(case.R_true, R0),
         "initial_translation_pct": 100.0 * offset_t / float(np.linalg.norm(case.t_true)),
         "initial_speed_score": speed_score(case.R_true, case.t_true, R0, t0),
@@ -285,6 +302,7 @@ def run_method(
     seed = spec.overrides.get("seed", est_seed)
     request = case.request.model_copy(update={"options": spec.options(seed=seed)})
     record: dict[str, Any] = {**fields, "method": spec.label, "estimator_seed": seed}
+    reset_peak_memory()
     start = time.perf_counter()
     try:
         result = estimate(model, reference, request).result
@@ -293,7 +311,13 @@ def run_method(
     except Exception as exc:  # a bug in one method must not end a long run; it is reported
         log.exception("method %s crashed on case %s", spec.label, fields["case_id"])
         return {**record, **failure("crash", exc), "seconds": _elapsed(start)}
-    return {**record, **outcome(result), "seconds": _elapsed(start)}
+    seconds = _elapsed(start)
+    costs = {
+        "seconds": seconds,
+        "render_equivalents": seconds / fields["render_s"] if fields.get("render_s") else None,
+        "peak_memory_mb": peak_memory_mb(),
+    }
+    return {**record, **outcome(result), **costs}
 
 
 def save_case(task: CaseTask, case: Case, records: list[dict[str, Any]]) -> None:

@@ -1,8 +1,9 @@
 """``proxpose bench``: accuracy and speed of our estimator against the baselines, paired.
 
-    proxpose bench [--quick | --full] [--models demo,iss,aura,phobos]
-                   [--methods default,fast,paper,pnp] [--bands 3,10,20] [--cases N] [--size PX]
-                   [--seed S] [--output DIR] [--jobs N]
+    proxpose bench [--quick | --full] [--robustness [--references A,B] [--starts offset,truth]]
+                   [--models demo,iss,aura,phobos] [--methods default,fast,paper,pnp]
+                   [--bands 3,10,20] [--cases N] [--size PX|WxH,...] [--seed S]
+                   [--output DIR] [--jobs N]
 
 Every method runs on the same seeded cases (:mod:`worker.bench.cases`), in this process unless
 ``--jobs`` > 1; DIR/bench.json, DIR/bench.md and DIR/error_vs_offset.png are written by
@@ -16,29 +17,22 @@ import argparse
 import os
 import sys
 import time
-from dataclasses import asdict
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
+from worker.bench.config import (
+    DEFAULT_BANDS,
+    DEFAULT_METHODS,
+    DEFAULT_OUTPUT,
+    ROBUSTNESS_BAND,
+    make_tasks,
+    prepare,
+)
 from worker.bench.outputs import environment, print_summary, write_outputs
 
 if TYPE_CHECKING:
     from worker.bench.cases import CaseOutcome, CaseTask
 
-ALL_MODELS = ["demo", "iss", "aura", "phobos"]
-#: Suite presets; an explicit --models/--cases/--size overrides the preset's value.
-SUITES: dict[str, dict[str, Any]] = {
-    "quick": {"models": ["demo"], "cases": 1, "size_px": 160},
-    "small": {"models": ALL_MODELS, "cases": 3, "size_px": 512},
-    "full": {"models": ALL_MODELS, "cases": 10, "size_px": 512},
-}
-#: The robustness suite's initial offsets: (lo, hi] degrees and percent of the range.
-ROBUSTNESS_BAND = (3.0, 10.0)
-#: Cases per model and reference class in the robustness suite (2 starts each).
-ROBUSTNESS_CASES = 2
-DEFAULT_METHODS = "default,fast,paper,pnp"
-DEFAULT_BANDS = "3,10,20"
-DEFAULT_OUTPUT = Path("bench-output")
 #: The public models' directory, relative to the repository (a sibling checkout).
 SHARED_MODELS_DIR = Path(__file__).resolve().parents[3] / "shared" / "models"
 #: Exit status for unusable arguments (as the CLI's other commands).
@@ -50,6 +44,17 @@ def _csv(text: str) -> list[str]:
     if not items:
         raise argparse.ArgumentTypeError("expected a comma-separated list")
     return items
+
+
+def _sizes(text: str) -> list[list[int]]:
+    sizes = []
+    for item in _csv(text):
+        w, sep, h = item.lower().partition("x")
+        try:
+            sizes.append([int(w), int(h) if sep else int(w)])
+        except ValueError as exc:
+            raise argparse.ArgumentTypeError(f"expected PX or WxH, got {item!r}") from exc
+    return sizes
 
 
 def _float_csv(text: str) -> list[float]:
@@ -96,7 +101,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         help="offset band edges: N = N° and N %% of range (default: %(default)s)",
     )
     parser.add_argument("--cases", type=int, help="cases per model and band (default 3)")
-    parser.add_argument("--size", type=int, help="image side, px (default 512)")
+    parser.add_argument(
+        "--size",
+        type=_sizes,
+        help="image sizes: PX (square) or WxH, comma-separated, e.g. 512,1024,1920x1200 "
+        "(default 512); a non-square camera has its principal point off the centre",
+    )
     parser.add_argument("--seed", type=int, default=0, help="suite seed (default 0)")
     parser.add_argument(
         "--offsets",
@@ -124,93 +134,6 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         action="store_true",
         help="only compare Mitsuba's batch sensor with separate perturbation renders",
     )
-
-
-def make_config(args: argparse.Namespace) -> dict[str, Any]:
-    """The suite settings from the arguments (preset, then explicit values), checked."""
-    from worker.bench.cases import BenchSetupError, band_edges, parse_method
-
-    name = "quick" if args.quick else "full" if args.full else "small"
-    preset = SUITES[name]
-    robust = bool(args.robustness or args.references)
-    cases = ROBUSTNESS_CASES if robust and name == "small" else preset["cases"]
-    config = {
-        "suite": f"robustness-{name}" if robust else name,
-        "models": args.models or preset["models"],
-        "methods": [parse_method(m).label for m in args.methods],
-        "bands": [ROBUSTNESS_BAND[1]] if robust else args.bands,
-        "references": _references(args.references) if robust else ["standard"],
-        "starts": _starts(args.starts) if robust else ["offset"],
-        "cases": cases if args.cases is None else args.cases,
-        "size_px": preset["size_px"] if args.size is None else args.size,
-        "seed": args.seed,
-        "offsets": args.offsets,
-        "jobs": args.jobs,
-        "save_cases": args.save_cases,
-    }
-    band_edges(config["bands"])
-    if len(set(config["methods"])) != len(config["methods"]):
-        raise BenchSetupError("a method is listed twice")
-    for key, lo, hi in (("cases", 1, 10_000), ("size_px", 32, 4096), ("jobs", 1, 256)):
-        if not lo <= config[key] <= hi:
-            raise BenchSetupError(f"{key} must be in {lo}..{hi}, got {config[key]}")
-    if not 0 <= config["seed"] < 2**32:
-        raise BenchSetupError("seed must be in 0..2³²−1")
-    return config
-
-
-def _references(names: list[str] | None) -> list[str]:
-    from worker.bench.cases import BenchSetupError
-    from worker.bench.references import REFERENCE_CLASSES
-
-    unknown = sorted(set(names or []) - set(REFERENCE_CLASSES))
-    if unknown:
-        known = ", ".join(REFERENCE_CLASSES)
-        raise BenchSetupError(f"unknown reference class {unknown[0]!r} (known: {known})")
-    return names or list(REFERENCE_CLASSES)
-
-
-def _starts(names: list[str] | None) -> list[str]:
-    from worker.bench.cases import BenchSetupError
-
-    starts = names or ["offset", "truth"]
-    if not set(starts) <= {"offset", "truth"} or len(set(starts)) != len(starts):
-        raise BenchSetupError(f"starts must be 'offset' and/or 'truth', got {starts}")
-    return starts
-
-
-def make_tasks(
-    config: dict[str, Any], models: list[tuple[str, Path]], output_dir: Path
-) -> list[CaseTask]:
-    """One task per (model, band, case index), in that order; for the robustness suite one per
-    (model, reference class, case index), each run from its guess and from the truth."""
-    from worker.bench.cases import CaseTask, band_edges, parse_method
-
-    methods = [parse_method(m) for m in config["methods"]]
-    robust = config["references"] != ["standard"]
-    bands = [ROBUSTNESS_BAND] if robust else band_edges(config["bands"])
-    starts = tuple(config["starts"])
-    return [
-        CaseTask(
-            model=name,
-            model_path=str(path),
-            band=hi,
-            band_lo=lo,
-            index=i,
-            size_px=config["size_px"],
-            seed=config["seed"],
-            offsets=config["offsets"],
-            methods=methods,
-            output_dir=str(output_dir),
-            save_cases=config["save_cases"],
-            reference=reference,
-            starts=starts,
-        )
-        for name, path in models
-        for reference in config["references"]
-        for lo, hi in bands
-        for i in range(config["cases"])
-    ]
 
 
 class Progress:
@@ -289,46 +212,6 @@ def run_parallel(
         except BaseException:
             pool.shutdown(wait=False, cancel_futures=True)
             raise
-
-
-def _case_conditions(config: dict[str, Any]) -> dict[str, Any]:
-    from worker.bench.cases import CAMERA_FOV_DEG, bench_camera
-    from worker.bench.synth import CaseSpec
-
-    spec = asdict(CaseSpec(0.0, 0.0))
-    del spec["offset_deg"], spec["offset_frac"]
-    return {
-        "camera": bench_camera(config["size_px"]).model_dump(),
-        "fov_deg": CAMERA_FOV_DEG,
-        "reference": spec,
-    }
-
-
-def prepare(args: argparse.Namespace) -> tuple[dict[str, Any], list[tuple[str, Path]]]:
-    """The checked suite settings and the models' paths (absent shared models skipped).
-
-    Raises
-    ------
-    BenchSetupError
-        When an argument is unusable or no model is left to bench.
-    """
-    from schemas.settings import get_settings
-    from worker.bench.cases import BenchSetupError, resolve_models
-
-    config = make_config(args)
-    require = os.environ.get("PROXPOSE_REQUIRE_SHARED") == "1"
-    data_dir = get_settings().data_dir
-    models, skipped = resolve_models(config["models"], args.models_dir, data_dir, require)
-    for message in skipped:
-        print(message, file=sys.stderr)
-    if not models:
-        raise BenchSetupError("no model left to bench")
-    config["models"] = [name for name, _ in models]
-    if len(set(config["models"])) != len(models):
-        raise BenchSetupError(f"a model is listed twice: {config['models']}")
-    config["skipped_models"] = skipped
-    config["conditions"] = _case_conditions(config)
-    return config, models
 
 
 def run_sensor_comparison(args: argparse.Namespace) -> int:

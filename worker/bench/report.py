@@ -103,7 +103,7 @@ def markdown(summary: dict[str, Any], config: dict[str, Any], env: dict[str, Any
         f"{machine}  \n"
         f"Models {', '.join(config['models'])}; {config['cases']} case(s) per model and "
         f"{'class' if summary['by_reference'] else 'band'}; "
-        f"{config['size_px']}×{config['size_px']} px; offsets `{config['offsets']}`; "
+        f"{', '.join(f'{w}×{h}' for w, h in config['sizes'])} px; offsets `{config['offsets']}`; "
         f"seed {config['seed']}.\n\n"
         f"Success: ≤ {SUCCESS_ROTATION_DEG:g}° and ≤ {SUCCESS_TRANSLATION_PCT:g} % of range. "
         "Errors: rotation in degrees, translation in % of range, over all cases (a failed "
@@ -117,7 +117,45 @@ def markdown(summary: dict[str, Any], config: dict[str, Any], env: dict[str, Any
         )
     if summary["by_reference"]:
         parts.append(robustness_tables(summary))
+    parts.append(size_table(summary))
     return "".join(parts)
+
+
+SIZE_HEADER = (
+    "| size | method | success | rot. median | transl. median | renders | s / estimate "
+    "| full render, s | render-equivalents | peak memory, MiB |\n"
+    "|---|---|---|---|---|---|---|---|---|---|\n"
+)
+
+
+def size_table(summary: dict[str, Any]) -> str:
+    """Cost per image size and method: seconds, renders, render-equivalents (engine seconds ÷
+    one full-resolution render of the same case, timed in the same run), peak memory."""
+    rows = ""
+    for group in summary["by_size"]:
+        for method, s in group["methods"].items():
+            rate = "—" if s["success_rate"] is None else f"{100 * s['success_rate']:.0f} %"
+            cells = [
+                str(group["group"]).replace("x", "×"),
+                f"`{method}`",
+                f"{rate} ({s['successes']}/{s['cases']})",
+                _num(s["rotation_deg_median"], "°"),
+                _num(s["translation_pct_median"], " %"),
+                _num(s["renders_median"]),
+                _num(s["seconds_median"]),
+                _num(s["render_s_median"]),
+                _num(s["render_equivalents_median"]),
+                _num(s["peak_memory_mb_max"]),
+            ]
+            rows += "| " + " | ".join(cells) + " |\n"
+    if not rows:
+        return ""
+    return (
+        "\n### Cost by image size\n\nRender-equivalents: engine seconds ÷ the time of one "
+        "full-resolution render of the same case (main spp), measured in the same run; "
+        f"medians. Peak memory: the process's resident high-water mark, the largest.\n\n"
+        f"{SIZE_HEADER}{rows}"
+    )
 
 
 ROBUST_HEADER = (

@@ -56,6 +56,11 @@ def _pct(values: Iterable[float], q: float) -> float | None:
     return float(np.percentile(a, q)) if a.size else None
 
 
+def _max(values: Iterable[float | None]) -> float | None:
+    a = [v for v in values if v is not None]
+    return float(max(a)) if a else None
+
+
 def _mean(values: Iterable[float]) -> float | None:
     a = np.asarray([v for v in values if v is not None], dtype=np.float64)
     return float(a.mean()) if a.size else None
@@ -93,6 +98,9 @@ def _offset_stats(records: list[Record]) -> Stats:
         "seconds_median": _pct((r["seconds"] for r in records), 50),
         "seconds_mean": _mean(r["seconds"] for r in records),
         "seconds_p90": _pct((r["seconds"] for r in records), 90),
+        "render_equivalents_median": _pct((r.get("render_equivalents") for r in returned), 50),
+        "render_s_median": _pct((r.get("render_s") for r in records), 50),
+        "peak_memory_mb_max": _max(r.get("peak_memory_mb") for r in returned),
     }
 
 
@@ -172,6 +180,7 @@ def summarize(records: list[Record], methods: list[str]) -> dict[str, Any]:
         "success_rotation_deg": SUCCESS_ROTATION_DEG,
         "success_translation_pct": SUCCESS_TRANSLATION_PCT,
         "by_band": group_summary(standard, methods, lambda r: r["band"]),
+        "by_size": group_summary(records, methods, lambda r: r.get("size", "?")),
         "by_model_band": group_summary(standard, methods, lambda r: f"{r['model']} b{r['band']:g}"),
         "overall": group_summary(standard, methods, lambda r: "all"),
         "by_reference": group_summary(classes, methods, lambda r: r["reference"]),

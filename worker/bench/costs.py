@@ -1,0 +1,64 @@
+"""What an estimate costs beside its seconds: render-equivalents and peak memory.
+
+A *render-equivalent* is the time of one full-resolution render of the case's model through
+its camera (the estimator's main spp), measured in the same run: engine seconds ÷ that time
+says how many full renders' worth an estimate takes, whatever the machine. Peak memory is the
+process's resident high-water mark during the estimate (Linux: reset through
+/proc/self/clear_refs, read from VmHWM); elsewhere it is not reported.
+"""
+
+from __future__ import annotations
+
+import time
+from pathlib import Path
+
+import numpy as np
+
+from schemas.estimate import EstimateRequest
+from worker.engine.meshes import LoadedModel
+
+#: Timed renders per case (after one untimed, which compiles); the median is kept.
+RENDER_REPEATS = 3
+_STATUS = Path("/proc/self/status")
+_CLEAR_REFS = Path("/proc/self/clear_refs")
+
+
+def full_render_seconds(model: LoadedModel, request: EstimateRequest) -> float:
+    """Median time of one full-resolution render at the request's true pose (its camera,
+    lighting and main spp), s."""
+    from worker.align.renderers import get_renderer, lighting_spec, texture_level
+    from worker.engine.camera import PinholeCamera
+    from worker.engine.posemath import pose_from_schema
+
+    camera = PinholeCamera.from_schema(request.camera)
+    pose = request.ground_truth or request.initial_pose
+    R, t = pose_from_schema(pose)
+    spp = request.options.resolved().spp
+    level = texture_level(model, camera, R, t)
+    renderer = get_renderer(model, camera, lighting_spec(request.lighting), (1.0,), spp, level)
+    renderer.render(R, t, spp=spp)
+    times = []
+    for i in range(RENDER_REPEATS):
+        start = time.perf_counter()
+        renderer.render(R, t, spp=spp, seed=i)
+        times.append(time.perf_counter() - start)
+    return float(np.median(times))
+
+
+def reset_peak_memory() -> None:
+    """Start a new resident-memory high-water mark (no-op where the OS has none to reset)."""
+    try:
+        _CLEAR_REFS.write_text("5")
+    except OSError:
+        pass
+
+
+def peak_memory_mb() -> float | None:
+    """The resident-memory high-water mark since the last reset, MiB (None: unknown)."""
+    try:
+        for line in _STATUS.read_text().splitlines():
+            if line.startswith("VmHWM:"):
+                return int(line.split()[1]) / 1024.0
+    except (OSError, ValueError):
+        pass
+    return None
