@@ -20,6 +20,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from worker.bench.raytrace import Physics, RayTracer
+from worker.bench.synth import one_render_thread
 from worker.engine.camera import PinholeCamera
 from worker.engine.images import srgb_encode
 from worker.engine.meshes import LoadedModel
@@ -154,7 +155,9 @@ def render_class_reference(
             px_per_unit=None,
             shading="faceted" if cls.faceted else "file",
         )
-        linear = renderer.render(R, t, seed=int(rng.integers(1 << 30)))
+        seed = int(rng.integers(1 << 30))
+        with one_render_thread():
+            linear = renderer.render(R, t, seed=seed)
     else:
         linear = _tracer(model, camera).render(R, t, sun, IRRADIANCE, AMBIENT, cls.physics, rng)
     return camera_response(linear, cls, rng)

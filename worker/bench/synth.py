@@ -9,6 +9,8 @@ then quantised to 8 bits. Tests and ``proxpose bench`` use it.
 
 from __future__ import annotations
 
+from collections.abc import Iterator
+from contextlib import contextmanager
 from dataclasses import dataclass
 
 import numpy as np
@@ -91,6 +93,21 @@ def draw_sun(rng: np.random.Generator) -> Array:
     return np.array([np.sin(phase) * np.cos(az), np.sin(phase) * np.sin(az), -np.cos(phase)])
 
 
+@contextmanager
+def one_render_thread() -> Iterator[None]:
+    """Dr.Jit on one thread meanwhile: Mitsuba's path tracer gives a seeded render that differs
+    from run to run on several threads (the order of its atomic accumulations), and a bench
+    case must be the same every time."""
+    import drjit as dr
+
+    threads = dr.thread_count()
+    dr.set_thread_count(1)
+    try:
+        yield
+    finally:
+        dr.set_thread_count(threads)
+
+
 def render_reference(
     model: LoadedModel,
     camera: PinholeCamera,
@@ -112,7 +129,9 @@ def render_reference(
         pixel_filter="gaussian",
         px_per_unit=0.5 * (camera.fx + camera.fy) / d,
     )
-    linear = r.render(R, t, seed=int(rng.integers(1 << 30)))
+    seed = int(rng.integers(1 << 30))
+    with one_render_thread():
+        linear = r.render(R, t, seed=seed)
     if spec.blur_px > 0:
         import cv2
 
