@@ -83,6 +83,12 @@ class EstimateResult(BaseModel):
     reason: StopReason
     iterations: int
     renders: int
+    render_cost: float = Field(
+        default=0.0,
+        description="What the renders cost, in full-resolution renders at the main spp "
+        "(pixels × samples per pixel): renders at a coarse level or with fewer samples count "
+        "for less.",
+    )
     seconds: float
     method: str
     history: list[IterationRecord]

@@ -223,6 +223,7 @@ def _result(
         reason=reason,
         iterations=session.iterations,
         renders=renders,
+        render_cost=round(session.render_cost, 3),
         seconds=time.perf_counter() - start,
         method=opts.method,
         history=session.history,

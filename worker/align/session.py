@@ -88,8 +88,10 @@ class Session:
     rng: np.random.Generator = field(default_factory=np.random.default_rng)
     #: The request's lighting (a fitted sun changes the renderer's, see worker.align.sunfit).
     requested_lighting: LightingSpec = field(init=False)
-    #: Renders made by this session (the renderer may be shared, or swapped mid-estimate).
+    #: Renders made by this session (the renderer may be shared, or swapped mid-estimate), and
+    #: what they cost in full-resolution renders at the main spp (pixels × samples).
     renders: int = 0
+    render_cost: float = 0.0
     #: The working level, and the scale of the perturbation renders at each level (the
     #: renderer has a sensor for every one of them).
     level: float = 1.0
@@ -224,6 +226,10 @@ class Session:
         linear = self.renderer.render(R, t, scale=scale, spp=spp, seed=seed)
         self.timings_s["render"] += self.renderer.stats.seconds - start
         self.renders += 1
+        full = self.renderer.camera_at(1.0)
+        self.render_cost += (
+            linear.shape[0] * linear.shape[1] * spp / (full.width * full.height * self.options.spp)
+        )
         return linear
 
     def use_renderer(self, renderer: Renderer) -> None:

@@ -52,6 +52,7 @@ def outcome(result: EstimateResult) -> dict[str, Any]:
         "speed_score": err.speed_score,
         "iterations": result.iterations,
         "renders": result.renders,
+        "render_cost": result.render_cost,
         "engine_seconds": result.seconds,
         "converged": result.converged,
         "reason": result.reason,
