@@ -61,10 +61,14 @@ function showUncertainty(result) {
     return;
   }
   const axes = ["x", "y", "z"];
-  table("sigma-table", "1-σ uncertainty", ["", "1σ"], [
-    ...axes.map((a, i) => [`rotation about model ${a} (°)`, num(c.sigma_rotation_deg[i], 3)]),
-    ...axes.map((a, i) => [`translation ${a} (scene units)`, num(c.sigma_translation[i], 3)]),
-    ["residual σ (px)", num(c.residual_sigma_px, 3)],
+  const stat = (list, i) => (list && list.length ? num(list[i], 3) : "—");
+  table("sigma-table", "1-σ uncertainty (feature noise and model mismatch)",
+    ["", "1σ", "of which noise"], [
+    ...axes.map((a, i) => [`rotation about model ${a} (°)`, num(c.sigma_rotation_deg[i], 3),
+      stat(c.statistical_sigma_rotation_deg, i)]),
+    ...axes.map((a, i) => [`translation ${a} (scene units)`, num(c.sigma_translation[i], 3),
+      stat(c.statistical_sigma_translation, i)]),
+    ["residual σ (px)", num(c.residual_sigma_px, 3), ""],
   ]);
   const names = ["δq1", "δq2", "δq3", "δtx", "δty", "δtz"];
   table("covariance-table", "Covariance over [δq, δt]", ["", ...names],
