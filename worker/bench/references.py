@@ -20,11 +20,11 @@ import numpy as np
 from numpy.typing import NDArray
 
 from worker.bench.raytrace import Physics, RayTracer
-from worker.bench.synth import one_render_thread
 from worker.engine.camera import PinholeCamera
 from worker.engine.images import srgb_encode
 from worker.engine.meshes import LoadedModel
 from worker.engine.renderer import LightingSpec, Renderer
+from worker.engine.variant import one_render_thread
 
 Array = NDArray[np.float64]
 #: Sun irradiance and ambient radiance of the references (the request asks for the defaults).

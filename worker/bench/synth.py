@@ -9,8 +9,6 @@ then quantised to 8 bits. Tests and ``proxpose bench`` use it.
 
 from __future__ import annotations
 
-from collections.abc import Iterator
-from contextlib import contextmanager
 from dataclasses import dataclass
 
 import numpy as np
@@ -25,6 +23,7 @@ from worker.engine.camera import PinholeCamera
 from worker.engine.meshes import LoadedModel
 from worker.engine.posemath import axis_angle_to_matrix, matrix_to_quaternion
 from worker.engine.renderer import LightingSpec, Renderer
+from worker.engine.variant import one_render_thread
 
 Array = NDArray[np.float64]
 
@@ -91,21 +90,6 @@ def draw_sun(rng: np.random.Generator) -> Array:
     phase = np.radians(rng.uniform(20.0, 70.0))
     az = rng.uniform(0.0, 2 * np.pi)
     return np.array([np.sin(phase) * np.cos(az), np.sin(phase) * np.sin(az), -np.cos(phase)])
-
-
-@contextmanager
-def one_render_thread() -> Iterator[None]:
-    """Dr.Jit on one thread meanwhile: Mitsuba's path tracer gives a seeded render that differs
-    from run to run on several threads (the order of its atomic accumulations), and a bench
-    case must be the same every time."""
-    import drjit as dr
-
-    threads = dr.thread_count()
-    dr.set_thread_count(1)
-    try:
-        yield
-    finally:
-        dr.set_thread_count(threads)
 
 
 def render_reference(

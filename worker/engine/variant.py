@@ -11,6 +11,8 @@ import glob
 import logging
 import os
 import re
+from collections.abc import Iterator
+from contextlib import contextmanager
 from pathlib import Path
 
 log = logging.getLogger(__name__)
@@ -76,3 +78,18 @@ def choose_variant(requested: str = "auto", llvm_path: Path | None = None) -> st
     mi.set_variant(variant)
     log.info("mitsuba variant %s", variant)
     return variant
+
+
+@contextmanager
+def one_render_thread() -> Iterator[None]:
+    """Dr.Jit on one thread meanwhile: Mitsuba's path tracer gives a seeded render that differs
+    from run to run on several threads (the order of its atomic accumulations); a seeded
+    reference must be the same image every time."""
+    import drjit as dr
+
+    threads = dr.thread_count()
+    dr.set_thread_count(1)
+    try:
+        yield
+    finally:
+        dr.set_thread_count(threads)
