@@ -57,7 +57,7 @@ class EstimateOptions(BaseModel):
         "refinement on ray-cast correspondences only (a baseline); 'fast': the default with "
         "the Jacobian from ray-cast geometry instead of perturbed renders.",
     )
-    max_iterations: int = Field(default=20, ge=1, le=100, description="Iteration cap (all stages).")
+    max_iterations: int = Field(default=30, ge=1, le=100, description="Iteration cap (all stages).")
     epsilon: float = Field(
         default=2e-5,
         gt=0.0,

@@ -25,7 +25,7 @@ from worker.align.coarse import (
 )
 from worker.align.lm import covariance
 from worker.align.pyramid import LevelPlan, plan_levels
-from worker.align.refine import run_lm_stage
+from worker.align.refine import Outcome, run_lm_stage
 from worker.align.renderers import get_renderer, lighting_spec, texture_level
 from worker.align.session import CancelCheck, ProgressCallback, RenderedView, Session
 from worker.align.shading import RendererFor, choose_shading
@@ -139,6 +139,14 @@ def _run_pipeline(session: Session, renderer_for: RendererFor, plan: LevelPlan) 
             return pnp_reason or "max_iterations"
     if opts.refine_features == "klt" and not coarse_ok:
         run_lm_stage(session, "matches", "coarse", handover_step=COARSE_HANDOVER_STEP)
+    return _refine(session, renderer_for, plan)
+
+
+def _refine(session: Session, renderer_for: RendererFor, plan: LevelPlan) -> StopReason:
+    """The refinement passes: the first at its (coarse) level, again there while a pass ends
+    'slow', then the rest at full resolution (``options.refine_passes`` in all, plus up to
+    MAX_EXTRA_PASSES that 'slow' passes earn)."""
+    opts = session.options
     # the first pass at its level, unless it is the only one (the last: at full resolution)
     session.set_level(plan.first_pass if opts.refine_passes > 1 else 1.0)
     if opts.shading_normals == "auto":
@@ -150,23 +158,30 @@ def _run_pipeline(session: Session, renderer_for: RendererFor, plan: LevelPlan) 
             raise
         session.set_level(1.0)  # too small at the coarse level: the first pass at full size
         outcome = run_lm_stage(session, opts.refine_features, "refine")
+    extra = 0
+    # A pass that ended 'slow' (its Jacobian overstates the motion) earns one more: at the
+    # coarse level while it is there, for a pass at full resolution should start close.
+    while session.level < 1.0 and outcome == "slow" and extra < MAX_EXTRA_PASSES:
+        outcome, extra = _pass(session, opts.fit_sun), extra + 1
     # A sun fitted at a coarse level stays for the full-resolution passes: its two tilted
     # renders would cost two full ones there (on 11 cases: better in 5, worse in 5).
     fit_sun = opts.fit_sun and session.level == 1.0
     session.set_level(1.0)
     passes = 1
-    # A pass that ended 'slow' (its Jacobian overstates the motion) earns one more, up to
-    # MAX_EXTRA_PASSES beyond those asked for.
     while session.iterations_left > 0 and (
-        passes < opts.refine_passes
-        or (outcome == "slow" and passes < opts.refine_passes + MAX_EXTRA_PASSES)
+        passes < opts.refine_passes or (outcome == "slow" and extra < MAX_EXTRA_PASSES)
     ):
+        extra += passes >= opts.refine_passes
         try:
-            outcome = run_lm_stage(session, opts.refine_features, "refine", fit_sun=fit_sun)
+            outcome = _pass(session, fit_sun)
         except TooFewFeaturesError:
             break  # the previous pass's pose stands (a pass moves only on accepted steps)
         passes += 1
     return "max_iterations" if outcome in ("handover", "slow") else outcome
+
+
+def _pass(session: Session, fit_sun: bool) -> Outcome:
+    return run_lm_stage(session, session.options.refine_features, "refine", fit_sun=fit_sun)
 
 
 def _errors(
