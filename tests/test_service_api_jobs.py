@@ -31,7 +31,7 @@ def test_submit_answers_202_with_location_and_the_job(client: TestClient, r: red
     assert len(job["id"]) == 32
     assert job["status"] == "queued"
     assert job["model_id"] == "demo-sat"
-    assert job["progress"] == {"iteration": 0, "max_iterations": 20, "cost": None, "stage": None}
+    assert job["progress"] == {"iteration": 0, "max_iterations": 30, "cost": None, "stage": None}
     assert job["result"] is None and job["error"] is None and job["artifacts"] == {}
     assert Queue(KEYS.estimate_queue, connection=r).job_ids == [f"{job['id']}-1"]
     assert client.get(response.headers["location"]).json() == job
