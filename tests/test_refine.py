@@ -16,9 +16,9 @@ from worker.align.learning import LearnedJacobian
 from worker.align.refine import (
     LAMBDA_MIN,
     SLOW_RATIO,
+    StageState,
     _broyden_update,
     _Damping,
-    _State,
     _step,
     _whiten,
     run_lm_stage,
@@ -136,7 +136,7 @@ def test_the_sun_prior_holds_the_tilt_when_the_features_do_not_see_it() -> None:
 def test_broyden_makes_the_rows_predict_the_motion_they_saw() -> None:
     session = make_session()
     wrong = J_TRUE * 1.3
-    st = _State(LinearFeatures(session, None), H0.copy(), np.ones(K, bool))  # type: ignore[arg-type]
+    st = StageState(LinearFeatures(session, None), H0.copy(), np.ones(K, bool))  # type: ignore[arg-type]
     st.learned = LearnedJacobian(wrong.copy(), np.ones(K, bool), np.zeros((6, 0)), 0)
     dp = DP_TRUE / 2
     h_new = H0 + (J_TRUE @ dp).reshape(K, 2)

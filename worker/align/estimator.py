@@ -58,6 +58,8 @@ class Estimate:
     result: EstimateResult
     reference: FloatImage
     views: dict[str, RenderedView]
+    #: The estimate's session at its end (a tracker goes on from its last stage).
+    session: Session | None = None
 
 
 def estimate(
@@ -108,7 +110,7 @@ def estimate(
     session.views["final"] = session.current_view()
     session.views.setdefault("second", session.views["final"])
     result = _result(session, reason, opts, R0, t0, truth, start, session.renders)
-    return Estimate(result, session.reference, session.views)
+    return Estimate(result, session.reference, session.views, session)
 
 
 def target_px(model: LoadedModel, camera: PinholeCamera, R: np.ndarray, t: np.ndarray) -> float:
@@ -184,9 +186,10 @@ def _pass(session: Session, fit_sun: bool) -> Outcome:
     return run_lm_stage(session, session.options.refine_features, "refine", fit_sun=fit_sun)
 
 
-def _errors(
+def errors_between(
     truth: tuple[np.ndarray, np.ndarray] | None, R: np.ndarray, t: np.ndarray
 ) -> Errors | None:
+    """The errors of pose (R, t) against ``truth`` (None without a truth)."""
     if truth is None:
         return None
     te = translation_error(truth[1], t)
@@ -198,7 +201,8 @@ def _errors(
     )
 
 
-def _covariance(session: Session) -> Covariance | None:
+def covariance_of(session: Session) -> Covariance | None:
+    """The pose covariance of the session's last linear fit (None without one)."""
     fit = session.fit
     if fit is None or len(fit.r) < 8:
         return None
@@ -259,15 +263,15 @@ def _result(
         seconds=time.perf_counter() - start,
         method=opts.method,
         history=session.history,
-        covariance=_covariance(session),
+        covariance=covariance_of(session),
         features=int(features),
         rms_residual_px=rms,
         alignment_score=score,
         sun_direction=[float(x) for x in sun],
         sun_tilt_deg=float(np.degrees(np.arccos(np.clip(sun @ asked, -1.0, 1.0)))),
         shading_normals=session.renderer.shading,  # type: ignore[arg-type]
-        errors=_errors(truth, session.R, session.t),
-        initial_errors=_errors(truth, R0, t0),
+        errors=errors_between(truth, session.R, session.t),
+        initial_errors=errors_between(truth, R0, t0),
         timings_s={k: round(v, 4) for k, v in session.timings_s.items()},
         variant=str(mi.variant()),
     )

@@ -61,7 +61,10 @@ RANSAC_REL = 0.25
 
 
 @dataclass
-class _State:
+class StageState:
+    """What a stage works on: its features, where they are in the current render, the learned
+    Jacobian and the pose-consistent inliers. A tracker hands one from frame to frame."""
+
     features: Features
     h: Array  # (k, 2) positions in the current render
     ok: NDArray[np.bool_]  # (k,) found in the current render
@@ -82,7 +85,7 @@ def _whiten(A: Array, X: Array) -> Array:
     return np.einsum("kij,kjn->kin", A, Xk).reshape(X.shape)
 
 
-def _new_state(session: Session, mode: str, view: RenderedView) -> _State:
+def _new_state(session: Session, mode: str, view: RenderedView) -> StageState:
     with session.timed("match"):
         feats: Features = (
             TrackedFeatures(session, view) if mode == "klt" else MatchedFeatures(session, view)
@@ -93,10 +96,12 @@ def _new_state(session: Session, mode: str, view: RenderedView) -> _State:
             f"only {int(ok.sum())} features found in common between the reference and the "
             f"render (need {session.options.min_features})"
         )
-    return _State(feats, h, ok)
+    return StageState(feats, h, ok)
 
 
-def _weights(session: Session, st: _State, J: Array, r: Array, active: NDArray[np.bool_]) -> Array:
+def _weights(
+    session: Session, st: StageState, J: Array, r: Array, active: NDArray[np.bool_]
+) -> Array:
     """Per-feature weights over ``active``: RANSAC inliers on first use, then IRLS (Tukey)."""
     if not session.options.robust:
         return np.ones(int(active.sum()))
@@ -121,7 +126,7 @@ def _step(J: Array, r: Array, lam: float, w: Array, sun: SunTilt | None) -> Arra
 
 def _broyden_update(
     session: Session,
-    st: _State,
+    st: StageState,
     active: NDArray[np.bool_],
     common: NDArray[np.bool_],
     h_new: Array,
@@ -219,6 +224,7 @@ def run_lm_stage(
     stage: Stage,
     handover_step: float | None = None,
     fit_sun: bool | None = None,
+    state: StageState | None = None,
 ) -> Outcome:
     """Learned-Jacobian LM from the session's pose until a stop rule fires.
 
@@ -228,15 +234,18 @@ def run_lm_stage(
     rejects it (:func:`_judge`). With ``handover_step``, the stage ends ('handover') at the
     first accepted step smaller than it: used when the matches-based LM stands in for a failed
     PnP coarse stage. ``fit_sun`` (default: options.fit_sun, in the 'refine' stage) solves for
-    the sun's tilt too; without it the sun stays as the renderer has it.
+    the sun's tilt too; without it the sun stays as the renderer has it. ``state`` starts the
+    stage from features and a Jacobian made before (a tracker's previous frame); the stage's
+    state is kept in ``session.last_stage``.
     """
     opts = session.options
     damping = _Damping(opts.lambda_init)
-    st: _State | None = None
+    st: StageState | None = state
     fit_sun = opts.fit_sun and stage == "refine" if fit_sun is None else fit_sun
     sun = SunTilt(session) if fit_sun else None
     while session.iterations_left > 0:
         st = _ready_state(session, st, mode, session.current_view(), sun)
+        session.last_stage = st
         system = _linear_system(session, st, damping.lam, sun)
         session.fit = LinearFit(system.J, system.r, system.w, st.h[system.active])
         step = step_norm(system.dp, session.range_)
@@ -254,8 +263,8 @@ def run_lm_stage(
 
 
 def _ready_state(
-    session: Session, st: _State | None, mode: str, view: RenderedView, sun: SunTilt | None
-) -> _State:
+    session: Session, st: StageState | None, mode: str, view: RenderedView, sun: SunTilt | None
+) -> StageState:
     """The stage's state at ``view``: features made on first use (for 'matches', at each new
     view), the Jacobian learned on first use (without reuse, at each new pose), and the
     sun's columns once."""
@@ -275,7 +284,7 @@ def _ready_state(
     return st
 
 
-def _linear_system(session: Session, st: _State, lam: float, sun: SunTilt | None) -> _System:
+def _linear_system(session: Session, st: StageState, lam: float, sun: SunTilt | None) -> _System:
     """Whitened rows and residuals of the usable features, their weights, and the LM step.
 
     Raises TooFewFeaturesError when fewer than ``min_features`` are usable.
@@ -307,7 +316,7 @@ def _linear_system(session: Session, st: _State, lam: float, sun: SunTilt | None
     return _System(active, A, J_px, J, r, w, weighted_cost(r, w), dp_all)
 
 
-def _trial(session: Session, st: _State, system: _System, sun: SunTilt | None) -> _Trial:
+def _trial(session: Session, st: StageState, system: _System, sun: SunTilt | None) -> _Trial:
     """Render at the pose the step leads to (the sun moved by its part of the step) and measure
     the features there, starting from where the linear model predicts them. The trial is judged
     on the same features as the current cost; one that cannot be judged, or does not lower
@@ -347,7 +356,7 @@ def _trial(session: Session, st: _State, system: _System, sun: SunTilt | None) -
 def _judge(
     session: Session,
     stage: Stage,
-    st: _State,
+    st: StageState,
     system: _System,
     trial: _Trial,
     step: float,

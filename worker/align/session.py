@@ -11,6 +11,7 @@ from collections import defaultdict
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass, field
+from typing import Any
 
 import cv2
 import numpy as np
@@ -85,6 +86,8 @@ class Session:
     current: RenderedView | None = None
     #: The learned linear model at the current pose (for the covariance and the result).
     fit: LinearFit | None = None
+    #: The last LM stage's state (worker.align.refine.StageState), for a tracker to go on from.
+    last_stage: Any = None
     rng: np.random.Generator = field(default_factory=np.random.default_rng)
     #: The request's lighting (a fitted sun changes the renderer's, see worker.align.sunfit).
     requested_lighting: LightingSpec = field(init=False)

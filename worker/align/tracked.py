@@ -13,6 +13,7 @@ render and which were found.
 
 from __future__ import annotations
 
+import copy
 from typing import Protocol
 
 import cv2
@@ -94,6 +95,36 @@ class TrackedFeatures:
         nan = np.full((len(self.corners), 2), np.nan)
         #: Per-feature normal for edge points, NaN for corners (used when learning J).
         self.feature_normals = np.vstack([nan, self.normals])
+
+    def carried(
+        self, session: Session, view: RenderedView, motion: Array
+    ) -> tuple[TrackedFeatures, NDArray[np.bool_]]:
+        """The same features in the session's (new) reference, a tracker's next frame: each
+        tracked from the previous reference into the new one, starting from where ``motion``
+        (k, 2), their predicted image motion, puts it; ``view`` is the render at the predicted
+        pose (it sets the tone scale and the whitening). Returns the carried set (only the
+        features found again) and which of this set's features it keeps."""
+        new = copy.copy(self)
+        ref_linear = srgb_decode(reference_on_render_scale(session.ref_image, view.linear))
+        new.scale = contrast_scale(self._render_grey(view))
+        ref_grey = srgb_encode(ref_linear)
+        new.ref8 = local_normalise(ref_grey, new.scale)
+        new.ref_f = local_normalise_f(ref_grey, new.scale)
+        kc = len(self.corners)
+        corners, ok_c = track(self.ref8, new.ref8, self.corners, self.corners + motion[:kc])
+        s0 = np.einsum("ki,ki->k", motion[kc:], self.normals)
+        s, ok_e = normal_shift(self.ref_f, new.ref_f, self.edges, self.normals, s0)
+        keep = np.concatenate([ok_c, ok_e])
+        new.corners = corners[ok_c]
+        new.edges = (self.edges + s[:, None] * self.normals)[ok_e]
+        new.normals = self.normals[ok_e]
+        new.x_ref = np.vstack([new.corners, new.edges])
+        A_corners = structure_whitening(
+            local_normalise(self._render_grey(view), new.scale), new.corners
+        )
+        new.A = np.concatenate([A_corners, self.A[kc:][ok_e]])
+        new.feature_normals = self.feature_normals[keep]
+        return new, keep
 
     def _render_grey(self, view: RenderedView) -> Array:
         if self.blur_render > 0.05:

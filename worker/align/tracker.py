@@ -1,0 +1,265 @@
+"""Tracking an image sequence: each frame goes on from what the previous one learned.
+
+The first frame is a full estimate from the request's initial pose. Every later frame starts
+from a constant-velocity prediction and keeps the previous frame's features (each tracked from
+the previous image into the new one, starting where the learned Jacobian predicts it moved),
+their learned Jacobian rows (Broyden-updated by every accepted step), the fitted sun and the
+sharpness match; so a frame costs a render at the prediction and a trial or two, not a full
+estimate. The learned-Jacobian LM stays the core: the rows are the paper's, learned from
+perturbed renders, and learned again (with the features made afresh) once the attitude has
+turned RELEARN_ROTATION_DEG from where they were learned or too few features are left.
+
+Each frame is refereed: a final render that explains the image poorly (alignment score below
+MIN_TRACK_SCORE) or too few features mark it lost, and the tracker re-initialises with a full
+estimate from the prediction ('reinitialised'); when that fails too, the frame is 'lost' and the
+prediction stands.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+from numpy.typing import NDArray
+
+from schemas.estimate import Covariance, Errors, EstimateRequest
+from worker.align.estimator import (
+    MIN_CONVERGED_SCORE,
+    covariance_of,
+    errors_between,
+    estimate,
+)
+from worker.align.learning import LearnedJacobian, learn_at_pose
+from worker.align.refine import StageState, run_lm_stage
+from worker.align.session import CancelCheck, Session
+from worker.align.tracked import TrackedFeatures
+from worker.engine.exceptions import ProxposeError, TooFewFeaturesError
+from worker.engine.images import FloatImage, check_size, to_grey
+from worker.engine.meshes import LoadedModel
+from worker.engine.metrics import rotation_error_deg
+from worker.engine.photometry import alignment_score
+from worker.engine.posemath import (
+    apply_increment,
+    increment_between,
+    pose_from_schema,
+    pose_to_schema,
+)
+
+Array = NDArray[np.float64]
+
+#: Iterations (trials) a tracked frame may take.
+FRAME_ITERATIONS = 4
+#: Alignment score below which a tracked frame is taken as lost.
+MIN_TRACK_SCORE = 0.85
+#: Fraction of the features (learned together) that must still be found in a frame.
+MIN_KEPT_FRACTION = 0.5
+#: Attitude change (deg) since the Jacobian was learned after which it is learned again.
+RELEARN_ROTATION_DEG = 6.0
+
+Pose = tuple[Array, Array]
+
+
+@dataclass
+class FrameResult:
+    """One frame's outcome."""
+
+    index: int
+    R: Array
+    t: Array
+    status: str  # tracked | reinitialised | lost
+    converged: bool
+    seconds: float
+    renders: int
+    render_cost: float
+    alignment_score: float
+    features: int
+    covariance: Covariance | None = None
+    errors: Errors | None = None
+    relearned: bool = False
+
+    def pose_json(self) -> dict[str, object]:
+        return pose_to_schema(self.R, self.t).model_dump()
+
+
+@dataclass
+class _Memory:
+    """What a frame hands to the next."""
+
+    state: StageState
+    learned_pose: Pose  # where the Jacobian was learned
+    learned_features: int  # how many features it was learned for
+    session: Session = field(repr=False)
+
+
+class Tracker:
+    """Estimates the pose in each frame of a sequence, in order (see the module docstring)."""
+
+    def __init__(
+        self, model: LoadedModel, request: EstimateRequest, should_cancel: CancelCheck | None = None
+    ) -> None:
+        self.model, self.request, self.should_cancel = model, request, should_cancel
+        self.poses: list[Pose] = []
+        self._memory: _Memory | None = None
+
+    # -- the sequence ---------------------------------------------------------------------
+    def track(self, image: FloatImage, truth: Pose | None = None) -> FrameResult:
+        """The next frame's pose (``truth``: its true pose, for the errors)."""
+        start = time.perf_counter()
+        index = len(self.poses)
+        cam = self.request.camera
+        check_size(image, cam.width, cam.height)
+        if self._memory is None:
+            R0, t0 = pose_from_schema(self.request.initial_pose)
+            frame = self._full(image, (R0, t0), truth, index, start, "reinitialised")
+        else:
+            frame = self._tracked(image, truth, index, start)
+        self.poses.append((frame.R, frame.t))
+        return frame
+
+    def predicted(self) -> Pose:
+        """The next pose by constant velocity (the last pose when there is only one)."""
+        R1, t1 = self.poses[-1]
+        if len(self.poses) < 2:
+            return R1, t1
+        R0, t0 = self.poses[-2]
+        return apply_increment(R1, t1, increment_between(R0, t0, R1, t1))
+
+    # -- a full estimate (first frame, re-initialisation) ---------------------------------
+    def _full(
+        self,
+        image: FloatImage,
+        guess: Pose,
+        truth: Pose | None,
+        index: int,
+        start: float,
+        status: str,
+    ) -> FrameResult:
+        request = self.request.model_copy(
+            update={"initial_pose": pose_to_schema(*guess), "ground_truth": None}
+        )
+        est = estimate(self.model, image, request, should_cancel=self.should_cancel)
+        session = est.session
+        assert session is not None
+        result = est.result
+        if session.last_stage is None or not isinstance(
+            session.last_stage.features, TrackedFeatures
+        ):
+            self._memory = None
+        else:
+            st = session.last_stage
+            self._memory = _Memory(st, (session.R, session.t), int(st.ok.sum()), session)
+        return FrameResult(
+            index,
+            session.R,
+            session.t,
+            status,
+            result.converged,
+            time.perf_counter() - start,
+            result.renders,
+            result.render_cost,
+            result.alignment_score,
+            result.features,
+            result.covariance,
+            errors_between(truth, session.R, session.t),
+        )
+
+    # -- a tracked frame ------------------------------------------------------------------
+    def _tracked(
+        self, image: FloatImage, truth: Pose | None, index: int, start: float
+    ) -> FrameResult:
+        memory = self._memory
+        assert memory is not None
+        R_p, t_p = self.predicted()
+        session = self._session(memory.session, image, (R_p, t_p), truth)
+        try:
+            st = self._carry(memory, session)
+            run_lm_stage(session, "klt", "refine", fit_sun=False, state=st)
+            score = alignment_score(session.ref_grey, session.current_view().grey)
+        except TooFewFeaturesError:
+            score = -1.0
+        fit = session.fit
+        n_features = fit.features if fit is not None else 0
+        if score < MIN_TRACK_SCORE or n_features < MIN_KEPT_FRACTION * memory.learned_features:
+            return self._recover(image, (R_p, t_p), truth, index, start)
+        relearned = self._keep(session, memory)
+        return FrameResult(
+            index,
+            session.R,
+            session.t,
+            "tracked",
+            score >= MIN_CONVERGED_SCORE,
+            time.perf_counter() - start,
+            session.renders,
+            round(session.render_cost, 3),
+            score,
+            n_features,
+            covariance_of(session),
+            errors_between(truth, session.R, session.t),
+            relearned,
+        )
+
+    def _session(
+        self, previous: Session, image: FloatImage, guess: Pose, truth: Pose | None
+    ) -> Session:
+        opts = previous.options.model_copy(update={"max_iterations": FRAME_ITERATIONS})
+        return Session(
+            renderer=previous.renderer,
+            reference=image,
+            reference_grey=to_grey(image),
+            options=opts,
+            R=guess[0],
+            t=guess[1],
+            truth=truth,
+            should_cancel=self.should_cancel,
+            rng=previous.rng,
+            perturbation_scales=previous.perturbation_scales,
+        )
+
+    def _carry(self, memory: _Memory, session: Session) -> StageState:
+        """The previous frame's features and Jacobian rows, moved into this frame."""
+        st = memory.state
+        assert st.learned is not None
+        R1, t1 = self.poses[-1]
+        dp = increment_between(R1, t1, session.R, session.t)
+        J = np.nan_to_num(st.learned.J)
+        motion = (J @ dp).reshape(-1, 2)
+        view = session.current_view()
+        features, keep = st.features.carried(session, view, motion)  # type: ignore[union-attr]
+        h, ok = features.measure(view, (st.h + motion)[keep])
+        rows = np.repeat(keep, 2)
+        learned = LearnedJacobian(st.learned.J[rows], st.learned.ok[keep], st.learned.B, 0)
+        return StageState(features, h, ok & st.ok[keep], learned, learned_at=view)
+
+    def _keep(self, session: Session, memory: _Memory) -> bool:
+        """Remember this frame's state for the next; learn the Jacobian afresh (with new
+        features) when the attitude has turned far since, or too few features are left."""
+        st = session.last_stage
+        turned = rotation_error_deg(memory.learned_pose[0], session.R)
+        left = int(st.ok.sum())
+        if turned < RELEARN_ROTATION_DEG and left >= MIN_KEPT_FRACTION * memory.learned_features:
+            self._memory = _Memory(st, memory.learned_pose, memory.learned_features, session)
+            return False
+        view = session.current_view()
+        features = TrackedFeatures(session, view)
+        h, ok = features.measure(view, None)
+        learned = learn_at_pose(session, h, features.feature_normals)
+        fresh = StageState(features, h, ok, learned, learned_at=view)
+        self._memory = _Memory(fresh, (session.R, session.t), int(ok.sum()), session)
+        return True
+
+    def _recover(
+        self, image: FloatImage, guess: Pose, truth: Pose | None, index: int, start: float
+    ) -> FrameResult:
+        """The frame is lost: a full estimate from the prediction, or the prediction itself."""
+        try:
+            frame = self._full(image, guess, truth, index, start, "reinitialised")
+            if frame.converged:
+                return frame
+        except ProxposeError:
+            pass
+        R, t = guess
+        return FrameResult(
+            index, R, t, "lost", False, time.perf_counter() - start, 0, 0.0, -1.0, 0,
+            None, errors_between(truth, R, t),
+        )  # fmt: skip
