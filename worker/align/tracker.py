@@ -57,6 +57,9 @@ MIN_KEPT_FRACTION = 0.5
 #: Attitude change (deg) since the Jacobian was learned after which it is learned again.
 RELEARN_ROTATION_DEG = 6.0
 
+#: The LM's stop rules that count as converged.
+CONVERGED = ("step_below_epsilon", "cost_converged")
+
 Pose = tuple[Array, Array]
 
 
@@ -77,6 +80,7 @@ class FrameResult:
     covariance: Covariance | None = None
     errors: Errors | None = None
     relearned: bool = False
+    reason: str = ""  # the LM's stop rule (a full estimate's reason for a re-initialised frame)
 
     def pose_json(self) -> dict[str, object]:
         return pose_to_schema(self.R, self.t).model_dump()
@@ -162,27 +166,50 @@ class Tracker:
             result.features,
             result.covariance,
             errors_between(truth, session.R, session.t),
+            reason=result.reason,
         )
 
     # -- a tracked frame ------------------------------------------------------------------
     def _tracked(
         self, image: FloatImage, truth: Pose | None, index: int, start: float
     ) -> FrameResult:
+        """A frame from the previous one's state; when that pass does not converge, a second
+        from features made afresh and a Jacobian learned at the pose it reached; when that
+        fails too, or the referee rejects the frame, a full estimate (:meth:`_recover`)."""
         memory = self._memory
         assert memory is not None
         R_p, t_p = self.predicted()
         session = self._session(memory.session, image, (R_p, t_p), truth)
+        relearned = False
         try:
-            st = self._carry(memory, session)
-            run_lm_stage(session, "klt", "refine", fit_sun=False, state=st)
+            reason = run_lm_stage(
+                session, "klt", "refine", fit_sun=False, state=self._carry(memory, session)
+            )
+            if reason not in CONVERGED:
+                relearned = True
+                session.options = session.options.model_copy(
+                    update={"max_iterations": len(session.history) + FRAME_ITERATIONS}
+                )
+                reason = run_lm_stage(
+                    session, "klt", "refine", fit_sun=False, state=self._fresh(session)
+                )
             score = alignment_score(session.ref_grey, session.current_view().grey)
         except TooFewFeaturesError:
-            score = -1.0
+            score, reason = -1.0, "too_few_features"
         fit = session.fit
         n_features = fit.features if fit is not None else 0
-        if score < MIN_TRACK_SCORE or n_features < MIN_KEPT_FRACTION * memory.learned_features:
-            return self._recover(image, (R_p, t_p), truth, index, start)
-        relearned = self._keep(session, memory)
+        if (
+            reason not in CONVERGED
+            or score < MIN_TRACK_SCORE
+            or n_features < MIN_KEPT_FRACTION * memory.learned_features
+        ):
+            guess = (session.R, session.t) if score >= MIN_TRACK_SCORE else (R_p, t_p)
+            return self._recover(image, guess, truth, index, start)
+        if relearned:
+            st = session.last_stage
+            self._memory = _Memory(st, (session.R, session.t), int(st.ok.sum()), session)
+        else:
+            relearned = self._keep(session, memory)
         return FrameResult(
             index,
             session.R,
@@ -197,6 +224,7 @@ class Tracker:
             covariance_of(session),
             errors_between(truth, session.R, session.t),
             relearned,
+            reason,
         )
 
     def _session(
@@ -240,13 +268,18 @@ class Tracker:
         if turned < RELEARN_ROTATION_DEG and left >= MIN_KEPT_FRACTION * memory.learned_features:
             self._memory = _Memory(st, memory.learned_pose, memory.learned_features, session)
             return False
+        fresh = self._fresh(session)
+        self._memory = _Memory(fresh, (session.R, session.t), int(fresh.ok.sum()), session)
+        return True
+
+    @staticmethod
+    def _fresh(session: Session) -> StageState:
+        """Features made afresh at the session's pose and their Jacobian learned there."""
         view = session.current_view()
         features = TrackedFeatures(session, view)
         h, ok = features.measure(view, None)
         learned = learn_at_pose(session, h, features.feature_normals)
-        fresh = StageState(features, h, ok, learned, learned_at=view)
-        self._memory = _Memory(fresh, (session.R, session.t), int(ok.sum()), session)
-        return True
+        return StageState(features, h, ok, learned, learned_at=view)
 
     def _recover(
         self, image: FloatImage, guess: Pose, truth: Pose | None, index: int, start: float
