@@ -2,6 +2,7 @@
 
     proxpose estimate --model MESH --image REF --request REQUEST.json --output DIR
     proxpose render   --model MESH --request REQUEST.json --pose POSE.json --output IMG.png
+    proxpose track    --model MESH --images DIR --request REQUEST.json --output OUT
 
 Other subcommands (serve, worker, bench, loadtest) are registered by their own modules; each
 is imported only when it runs, so ``estimate`` never loads the web stack and ``serve`` never
@@ -106,6 +107,57 @@ def cmd_estimate(args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_track(args: argparse.Namespace) -> int:
+    from schemas.track import TrackFrame, TrackRequest
+    from worker.engine.exceptions import InvalidInputError
+    from worker.tracking import FrameFile, frame_files, run_track, track_csv, trajectory_png
+
+    request = _read_json(args.request, TrackRequest)
+    if not args.model.is_file():
+        raise BadInput(f"model file not found: {args.model}")
+    if not args.images.is_dir():
+        raise BadInput(f"not a directory: {args.images}")
+    paths = frame_files(args.images)
+    if not paths:
+        raise BadInput(f"{args.images}: no PNG, JPEG or TIFF frames")
+    frames = [FrameFile(p.name, _read_bytes(p)) for p in paths]
+    bar = None
+    if sys.stderr.isatty() and not args.quiet:
+        from tqdm import tqdm
+
+        bar = tqdm(total=len(frames), unit="frame", desc="track", leave=False, file=sys.stderr)
+
+    def on_frame(frame: TrackFrame) -> None:
+        if bar is not None:
+            bar.set_postfix_str(f"{frame.image} {frame.status} {frame.seconds:.2f}s")
+            bar.update(1)
+
+    try:
+        result = run_track(args.model, frames, request, on_frame)  # type: ignore[arg-type]
+    except InvalidInputError as exc:
+        raise BadInput(str(exc)) from exc
+    finally:
+        if bar is not None:
+            bar.close()
+    args.output.mkdir(parents=True, exist_ok=True)
+    (args.output / "track.json").write_text(result.model_dump_json(indent=2))
+    (args.output / "track.csv").write_text(track_csv(result))
+    (args.output / "trajectory.png").write_bytes(trajectory_png(result))
+    s = result.summary
+    err = ""
+    if s.median_rotation_error_deg is not None:
+        err = (
+            f", error median {s.median_rotation_error_deg:.4f}° / "
+            f"{s.median_translation_pct_of_range:.4f} % (max {s.max_rotation_error_deg:.4f}°)"
+        )
+    print(
+        f"{s.frames} frames: {s.tracked} tracked, {s.reinitialised} re-initialised, {s.lost} "
+        f"lost; {s.converged} converged, {s.frames_per_second:.2f} frames/s{err} "
+        f"→ {args.output / 'track.json'}"
+    )
+    return 0
+
+
 def cmd_render(args: argparse.Namespace) -> int:
     from schemas.estimate import EstimateRequest
     from schemas.pose import Pose
@@ -140,6 +192,16 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--output", type=Path, required=True, help="directory for result + PNGs")
     p.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
     p.set_defaults(handler=cmd_estimate)
+
+    p = sub.add_parser("track", help="track the pose through an image sequence")
+    p.add_argument("--model", type=Path, required=True, help="mesh: OBJ, PLY, STL, GLB, GLTF")
+    p.add_argument("--images", type=Path, required=True, help="directory of frames, name order")
+    p.add_argument(
+        "--request", type=Path, required=True, help="REQUEST.json (ground_truth: a pose per frame)"
+    )
+    p.add_argument("--output", type=Path, required=True, help="directory for track.json + plots")
+    p.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
+    p.set_defaults(handler=cmd_track)
 
     p = sub.add_parser("render", help="render the model at a pose")
     p.add_argument("--model", type=Path, required=True)

@@ -9,10 +9,11 @@ estimate. The learned-Jacobian LM stays the core: the rows are the paper's, lear
 perturbed renders, and learned again (with the features made afresh) once the attitude has
 turned RELEARN_ROTATION_DEG from where they were learned or too few features are left.
 
-Each frame is refereed: a final render that explains the image poorly (alignment score below
-MIN_TRACK_SCORE) or too few features mark it lost, and the tracker re-initialises with a full
-estimate from the prediction ('reinitialised'); when that fails too, the frame is 'lost' and the
-prediction stands.
+Each frame is refereed: an LM that does not converge, a final render that explains the image
+poorly (alignment score below MIN_TRACK_SCORE, or far below the last frames') or too few
+features mark it lost, and the tracker re-initialises with a full estimate ('reinitialised'),
+from where the LM got to when that still aligns, else from the prediction; when that fails
+too, the frame is 'lost' and the prediction stands.
 """
 
 from __future__ import annotations
@@ -52,6 +53,12 @@ Array = NDArray[np.float64]
 FRAME_ITERATIONS = 4
 #: Alignment score below which a tracked frame is taken as lost.
 MIN_TRACK_SCORE = 0.85
+#: A frame is lost, too, when its misalignment (1 − alignment score) exceeds this many times
+#: the median of the last MISALIGNMENT_FRAMES accepted frames' (and at least
+#: MIN_MISALIGNMENT): the score's level depends on the target and the image, its jump does not.
+MISALIGNMENT_GROWTH = 3.0
+MISALIGNMENT_FRAMES = 5
+MIN_MISALIGNMENT = 0.005
 #: Fraction of the features (learned together) that must still be found in a frame.
 MIN_KEPT_FRACTION = 0.5
 #: Attitude change (deg) since the Jacobian was learned after which it is learned again.
@@ -104,6 +111,7 @@ class Tracker:
     ) -> None:
         self.model, self.request, self.should_cancel = model, request, should_cancel
         self.poses: list[Pose] = []
+        self._misalignment: list[float] = []
         self._memory: _Memory | None = None
 
     # -- the sequence ---------------------------------------------------------------------
@@ -119,7 +127,15 @@ class Tracker:
         else:
             frame = self._tracked(image, truth, index, start)
         self.poses.append((frame.R, frame.t))
+        if frame.status != "lost":
+            self._misalignment.append(1.0 - frame.alignment_score)
         return frame
+
+    def _misaligned(self, score: float) -> bool:
+        """Whether a frame's alignment score is far below the last frames'."""
+        recent = self._misalignment[-MISALIGNMENT_FRAMES:]
+        level = float(np.median(recent)) if recent else 0.0
+        return 1.0 - score > max(MISALIGNMENT_GROWTH * level, MIN_MISALIGNMENT)
 
     def predicted(self) -> Pose:
         """The next pose by constant velocity (the last pose when there is only one)."""
@@ -201,9 +217,11 @@ class Tracker:
         if (
             reason not in CONVERGED
             or score < MIN_TRACK_SCORE
+            or self._misaligned(score)
             or n_features < MIN_KEPT_FRACTION * memory.learned_features
         ):
-            guess = (session.R, session.t) if score >= MIN_TRACK_SCORE else (R_p, t_p)
+            aligned = score >= MIN_TRACK_SCORE and not self._misaligned(score)
+            guess = (session.R, session.t) if aligned else (R_p, t_p)
             return self._recover(image, guess, truth, index, start)
         if relearned:
             st = session.last_stage

@@ -11,6 +11,7 @@ frame's initial guess is a few degrees and percent off.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from pathlib import Path
 
 import numpy as np
 from numpy.typing import NDArray
@@ -54,10 +55,15 @@ class Sequence:
 
 
 def truths(
-    model: LoadedModel, camera: PinholeCamera, motion: Motion, n: int, rng: np.random.Generator
+    model: LoadedModel,
+    camera: PinholeCamera,
+    motion: Motion,
+    n: int,
+    rng: np.random.Generator,
+    fill: float = 0.5,
 ) -> list[tuple[Array, Array]]:
-    """The true poses of ``n`` frames."""
-    R, t = draw_truth(model, camera, CaseSpec(0.0, 0.0, fill=0.5), rng)
+    """The true poses of ``n`` frames, the first filling ``fill`` of the image."""
+    R, t = draw_truth(model, camera, CaseSpec(0.0, 0.0, fill=fill), rng)
     axis = rng.normal(size=3)
     step = axis_angle_to_matrix(axis, np.radians(motion.spin_deg))
     orbit = axis_angle_to_matrix(np.array([0.0, 1.0, 0.0]), np.radians(motion.orbit_deg))
@@ -82,11 +88,12 @@ def make_sequence(
     seed: int,
     reference: str = "combined",
     offset_deg: float = 2.0,
+    fill: float = 0.5,
 ) -> Sequence:
     """``n`` frames of ``motion`` rendered as class ``reference``, and the request."""
     rng = np.random.default_rng(seed)
     cam = PinholeCamera.from_schema(camera)
-    poses = truths(model, cam, motion, n, rng)
+    poses = truths(model, cam, motion, n, rng, fill)
     sun = draw_sun(rng)  # fixed in the camera's frame
     cls = REFERENCE_CLASSES[reference]
     sun_true = perturb_direction(sun, cls.sun_error_deg, rng)
@@ -100,3 +107,26 @@ def make_sequence(
         lighting=Lighting(sun_direction=list(map(float, sun))),
     )
     return Sequence(frames, poses, request)
+
+
+def write_sequence(seq: Sequence, directory: Path) -> Path:
+    """Write the frames (frame_000.png, …) and request.json, with the truth per frame, into
+    ``directory``: the input of ``proxpose track``. Returns the request's path."""
+    import cv2
+
+    from schemas.track import TrackRequest
+
+    directory.mkdir(parents=True, exist_ok=True)
+    for k, frame in enumerate(seq.frames):
+        rgb = frame if frame.ndim == 2 else frame[..., ::-1]
+        cv2.imwrite(str(directory / f"frame_{k:03d}.png"), rgb)
+    request = TrackRequest(
+        camera=seq.request.camera,
+        initial_pose=seq.request.initial_pose,
+        lighting=seq.request.lighting,
+        options=seq.request.options,
+        ground_truth=[pose_json(R, t) for R, t in seq.truths],
+    )
+    path = directory / "request.json"
+    path.write_text(request.model_dump_json(indent=1, exclude_defaults=True))
+    return path
