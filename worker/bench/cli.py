@@ -130,6 +130,18 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     )
     parser.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
     parser.add_argument(
+        "--sequences",
+        type=_csv,
+        nargs="?",
+        const=",".join(("approach", "flyaround", "tumble")),
+        help="only the sequence suite: the tracker against chained estimates on these motions "
+        "(default approach,flyaround,tumble; --models, --size, --seed apply; see --frames)",
+    )
+    parser.add_argument(
+        "--frames", type=int, default=24, help="--sequences: frames per sequence (default 24)"
+    )
+    parser.add_argument("--no-chained", action="store_true", help="--sequences: the tracker only")
+    parser.add_argument(
         "--sensor",
         action="store_true",
         help="only compare Mitsuba's batch sensor with separate perturbation renders",
@@ -234,10 +246,44 @@ def run_sensor_comparison(args: argparse.Namespace) -> int:
     return 0
 
 
+def run_sequence_suite(args: argparse.Namespace) -> int:
+    """``--sequences``: the tracker and chained estimates on rendered sequences."""
+    from worker.bench.cases import BenchSetupError, resolve_models
+    from worker.bench.sequences import MOTIONS
+    from worker.bench.tracks import DEFAULT_REFERENCES, run_suite
+    from worker.entry import init_renderer_backend
+
+    bad = [m for m in args.sequences if m not in MOTIONS]
+    if bad:
+        print(f"error: --sequences: unknown motion {bad[0]!r} (know {', '.join(MOTIONS)})",
+              file=sys.stderr)  # fmt: skip
+        return EXIT_USAGE
+    require = os.environ.get("PROXPOSE_REQUIRE_SHARED") == "1"
+    try:
+        models, skipped = resolve_models(
+            args.models or ["iss", "aura"], SHARED_MODELS_DIR, args.output / "models", require
+        )
+    except BenchSetupError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return EXIT_USAGE
+    for message in skipped:
+        print(message, file=sys.stderr)
+    variant = init_renderer_backend()
+    size = args.size[0][0] if args.size else 512
+    references = args.references or list(DEFAULT_REFERENCES)
+    print(f"sequence suite ({variant}, {size} px, {args.frames} frames each)")
+    run_suite(models, args.sequences, references, args.frames, size, args.seed, args.output,
+              chained=not args.no_chained)  # fmt: skip
+    print(f"wrote {args.output / 'sequences.json'}, sequences.md")
+    return 0
+
+
 def run(args: argparse.Namespace) -> int:
     """The ``bench`` command: run every case, then write the outputs (also when interrupted)."""
     if args.sensor:
         return run_sensor_comparison(args)
+    if args.sequences:
+        return run_sequence_suite(args)
     from worker.bench.cases import BenchSetupError
     from worker.entry import init_renderer_backend
 
