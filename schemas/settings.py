@@ -67,10 +67,10 @@ class Settings(BaseSettings):
         description="Where the embedded Redis keeps its data, and where each worker caches model "
         "files and the demo model.",
     )
-    variant: Literal["auto", "llvm_ad_rgb", "scalar_rgb"] = Field(
+    variant: Literal["auto", "cuda_ad_rgb", "llvm_ad_rgb", "scalar_rgb"] = Field(
         default="auto",
-        description="Mitsuba variant; 'auto' takes llvm_ad_rgb when an LLVM ≥ 16 is found, "
-        "else scalar_rgb.",
+        description="Mitsuba variant; 'auto' takes cuda_ad_rgb when Dr.Jit finds a CUDA "
+        "device, else llvm_ad_rgb when an LLVM ≥ 16 is found, else scalar_rgb.",
     )
     llvm_path: Path | None = Field(
         default=None, description="libLLVM shared library for Dr.Jit (found automatically)."

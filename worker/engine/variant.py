@@ -17,6 +17,7 @@ from pathlib import Path
 
 log = logging.getLogger(__name__)
 
+CUDA_VARIANT = "cuda_ad_rgb"
 LLVM_VARIANT = "llvm_ad_rgb"
 SCALAR_VARIANT = "scalar_rgb"
 #: Oldest LLVM major version Dr.Jit runs on here.
@@ -54,16 +55,25 @@ def find_llvm(explicit: Path | None = None) -> str | None:
 def choose_variant(requested: str = "auto", llvm_path: Path | None = None) -> str:
     """Set and return the Mitsuba variant for this process (idempotent).
 
-    ``requested`` is 'auto', 'llvm_ad_rgb' or 'scalar_rgb'. LLVM is used only when a library
-    ≥ 16 is found and Dr.Jit reports the backend usable; otherwise scalar_rgb, with a log line.
+    ``requested`` is 'auto', 'cuda_ad_rgb', 'llvm_ad_rgb' or 'scalar_rgb'. 'auto' takes CUDA
+    when Dr.Jit finds a CUDA device (:func:`cuda_available`), else LLVM, used only when a
+    library ≥ 16 is found and Dr.Jit reports the backend usable; otherwise scalar_rgb, with a
+    log line. A requested 'cuda_ad_rgb' without a device falls back the same way.
     """
     import mitsuba as mi
 
     current = mi.variant()
     if current is not None:
         return str(current)
+    if requested in ("auto", CUDA_VARIANT):
+        if cuda_available():
+            mi.set_variant(CUDA_VARIANT)
+            log.info("mitsuba variant %s", CUDA_VARIANT)
+            return CUDA_VARIANT
+        if requested == CUDA_VARIANT:
+            log.warning("no CUDA device: rendering with the LLVM or scalar variant")
     variant = SCALAR_VARIANT
-    if requested in ("auto", LLVM_VARIANT):
+    if requested in ("auto", CUDA_VARIANT, LLVM_VARIANT):
         lib = find_llvm(llvm_path)
         if lib is None:
             log.info("no LLVM >= %d found: rendering with %s", LLVM_MIN_MAJOR, SCALAR_VARIANT)
@@ -78,6 +88,20 @@ def choose_variant(requested: str = "auto", llvm_path: Path | None = None) -> st
     mi.set_variant(variant)
     log.info("mitsuba variant %s", variant)
     return variant
+
+
+def cuda_available() -> bool:
+    """Whether this Mitsuba build has the CUDA variant and Dr.Jit finds a CUDA device."""
+    import drjit as dr
+    import mitsuba as mi
+
+    if CUDA_VARIANT not in mi.variants():
+        return False
+    try:
+        return bool(dr.has_backend(dr.JitBackend.CUDA))
+    except Exception:  # a broken driver is no device
+        log.info("Dr.Jit could not start CUDA", exc_info=True)
+        return False
 
 
 @contextmanager
