@@ -14,6 +14,7 @@ render and which were found.
 from __future__ import annotations
 
 import copy
+from dataclasses import dataclass
 from typing import Protocol
 
 import cv2
@@ -95,27 +96,37 @@ class TrackedFeatures:
         nan = np.full((len(self.corners), 2), np.nan)
         #: Per-feature normal for edge points, NaN for corners (used when learning J).
         self.feature_normals = np.vstack([nan, self.normals])
+        #: Where the corners were found (a tracker carries them from here, see carried()).
+        self.anchor = _Anchor(self.ref8, self.corners.copy())
+        self.anchor_corners = np.arange(len(self.corners))
 
     def carried(
         self, session: Session, view: RenderedView, motion: Array
     ) -> tuple[TrackedFeatures, NDArray[np.bool_]]:
         """The same features in the session's (new) reference, a tracker's next frame: each
-        tracked from the previous reference into the new one, starting from where ``motion``
-        (k, 2), their predicted image motion, puts it; ``view`` is the render at the predicted
+        tracked from the reference it was found in (the anchor, so that frame-to-frame errors
+        do not add up) into the new one, starting from where ``motion`` (k, 2), their predicted
+        image motion since the last frame, puts it; ``view`` is the render at the predicted
         pose (it sets the tone scale and the whitening). Returns the carried set (only the
         features found again) and which of this set's features it keeps."""
         new = copy.copy(self)
+        anchor = self.anchor
         ref_linear = srgb_decode(reference_on_render_scale(session.ref_image, view.linear))
         new.scale = contrast_scale(self._render_grey(view))
         ref_grey = srgb_encode(ref_linear)
         new.ref8 = local_normalise(ref_grey, new.scale)
         new.ref_f = local_normalise_f(ref_grey, new.scale)
         kc = len(self.corners)
-        corners, ok_c = track(self.ref8, new.ref8, self.corners, self.corners + motion[:kc])
+        corners, ok_c = track(
+            anchor.ref8, new.ref8, anchor.corners[self.anchor_corners], self.corners + motion[:kc]
+        )
+        # An edge point slides along its edge: only its shift across it is tracked, from the
+        # last frame (its along-edge position is not the anchor's anyway).
         s0 = np.einsum("ki,ki->k", motion[kc:], self.normals)
         s, ok_e = normal_shift(self.ref_f, new.ref_f, self.edges, self.normals, s0)
         keep = np.concatenate([ok_c, ok_e])
         new.corners = corners[ok_c]
+        new.anchor_corners = self.anchor_corners[ok_c]
         new.edges = (self.edges + s[:, None] * self.normals)[ok_e]
         new.normals = self.normals[ok_e]
         new.x_ref = np.vstack([new.corners, new.edges])
@@ -163,6 +174,12 @@ class TrackedFeatures:
             if not ok.any() or np.abs(left[ok]).max() < MEASURE_TOL_PX:
                 break
         return h, ok & (np.hypot(*left.T) < MEASURE_MAX_LEFT_PX)
+
+
+@dataclass(frozen=True)
+class _Anchor:
+    ref8: NDArray[np.uint8]  # the normalised reference the corners were found in
+    corners: Array  # (kc, 2) their positions there
 
 
 def _blurred(img: Array, sigma_px: float) -> Array:
