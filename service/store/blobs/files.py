@@ -56,9 +56,12 @@ class FileBlobStore:
             raise self._unavailable(exc) from exc
 
     def get(self, name: str) -> bytes | None:
+        path = self._path(name)
         try:
-            return self._path(name).read_bytes()
-        except (FileNotFoundError, NotADirectoryError):
+            return path.read_bytes()
+        except (FileNotFoundError, NotADirectoryError) as exc:
+            if not self.root.is_dir():  # the store itself is gone (an unmounted volume)
+                raise BlobStoreUnavailable(self.description, "its directory is missing") from exc
             return None
         except OSError as exc:
             raise self._unavailable(exc) from exc
