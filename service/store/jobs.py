@@ -133,8 +133,10 @@ class JobStore:
             fingerprint=fingerprint,
             image_blob=job_image_name(job_id),
         )
+        written = False
         try:
             self.blobs.put(job_image_name(job_id), image)
+            written = True
             with self.r.pipeline(transaction=True) as pipe:
                 pipe.multi()  # explicit: RQ's enqueue checks for it
                 pipe.hset(self.keys.job(job_id), mapping=record.queued_hash())  # type: ignore[arg-type]
@@ -145,7 +147,8 @@ class JobStore:
                 pipe.execute()
         except BaseException:
             self.r.srem(active, job_id)  # give the reserved place back
-            self._forget_blobs([job_image_name(job_id)])
+            if written:
+                self._forget_blobs([job_image_name(job_id)])
             raise
         return record
 

@@ -59,9 +59,9 @@ class FileBlobStore:
         path = self._path(name)
         try:
             return path.read_bytes()
-        except (FileNotFoundError, NotADirectoryError) as exc:
-            if not self.root.is_dir():  # the store itself is gone (an unmounted volume)
-                raise BlobStoreUnavailable(self.description, "its directory is missing") from exc
+        except (FileNotFoundError, NotADirectoryError):
+            if not self.root.is_dir():  # a new store (an upgrade) or a broken one: which?
+                self.ping()
             return None
         except OSError as exc:
             raise self._unavailable(exc) from exc
