@@ -42,12 +42,14 @@ EngineErrorCode = Literal[
 ]
 #: Codes a failed job or render reports: the engine's, and those the worker process and the
 #: job store add (the model is not registered; the job ran out of time; its workers died
-#: ``job_max_attempts`` times; anything else, with the traceback kept for operators).
+#: ``job_max_attempts`` times; the blob store was down or full on each of its attempts;
+#: anything else, with the traceback kept for operators).
 JobErrorCode = Literal[
     EngineErrorCode,
     "model_not_found",
     "timeout",
     "worker_lost",
+    "store_unavailable",
     "internal_error",
 ]
 #: Codes of a rejected upload (the ``type`` of its 422 answer): the engine's codes for the

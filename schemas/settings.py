@@ -110,7 +110,43 @@ class Settings(BaseSettings):
     retention_s: int = Field(
         default=7 * _DAY_S,
         ge=60,
-        description="How long finished jobs, their results and artifacts are kept in Redis.",
+        description="How long finished jobs, their results and artifacts are kept (the job in "
+        "Redis, its blobs in the blob store).",
+    )
+
+    # -- blobs (reference images, artifacts, model files)
+    blob_store: str | None = Field(
+        default=None,
+        description="Where the bytes go (reference images, artifact PNGs, model files): "
+        "file:///path (a directory) or s3://bucket/prefix (S3-compatible, with s3_endpoint_url "
+        "for MinIO and others). Unset: file://<data_dir>/blobs. API and workers must share it.",
+    )
+    s3_endpoint_url: str | None = Field(
+        default=None,
+        pattern=r"^https?://\S+$",
+        description="Endpoint of an S3-compatible store, e.g. http://minio:9000 (unset: AWS).",
+    )
+    s3_region: str | None = Field(default=None, description="Region of the S3 bucket.")
+    s3_access_key_id: str | None = Field(
+        default=None,
+        repr=False,
+        description="S3 access key (unset: boto3's chain, e.g. AWS_ACCESS_KEY_ID or a role).",
+    )
+    s3_secret_access_key: str | None = Field(
+        default=None, repr=False, description="S3 secret key (unset: boto3's chain)."
+    )
+    blob_timeout_s: float = Field(
+        default=10.0,
+        gt=0.0,
+        le=300.0,
+        description="Connect and read timeout of one S3 request, s.",
+    )
+    blob_sweep_s: int = Field(
+        default=600,
+        ge=5,
+        le=_DAY_S,
+        description="Period of the blob sweep (one worker per period deletes the blobs of "
+        "ended, expired and deleted jobs and models), s.",
     )
 
     # -- HTTP
@@ -239,6 +275,18 @@ class Settings(BaseSettings):
             return [o.strip().rstrip("/") for o in value.split(",") if o.strip()]
         return value
 
+    @field_validator("blob_store")
+    @classmethod
+    def _blob_store_url(cls, value: str | None) -> str | None:
+        if value is None or not value.strip():
+            return None
+        value = value.strip()
+        if value.startswith("file://") and len(value) > len("file://"):
+            return value
+        if re.match(r"^s3://[a-z0-9][a-z0-9.-]{1,61}[a-z0-9](/[^\s]*)?$", value):
+            return value
+        raise ValueError("must be file:///path/to/dir or s3://bucket[/prefix]")
+
     @model_validator(mode="after")
     def _keys_distinct(self) -> Settings:
         entries = [*self.api_keys.items(), *self.admin_api_keys.items()]
@@ -252,6 +300,10 @@ class Settings(BaseSettings):
     def auth_enabled(self) -> bool:
         """Whether API keys are required (some key is configured)."""
         return bool(self.api_keys or self.admin_api_keys)
+
+    def effective_blob_store(self) -> str:
+        """``blob_store``, or the directory ``blobs`` under ``data_dir`` when it is unset."""
+        return self.blob_store or f"file://{Path(self.data_dir).absolute() / 'blobs'}"
 
     def effective_redis_url(self) -> str:
         """``redis_url``, or the URL of the embedded Redis when it is unset."""

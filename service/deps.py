@@ -1,8 +1,9 @@
 """Dependencies of the routes, as ``Annotated`` aliases.
 
-The Redis clients live on ``app.state`` (made in the lifespan from the settings of that moment);
-stores are cheap views over them, built per request for the caller (``PrincipalDep``): a job
-or model store sees only the caller's records unless the caller is an admin.
+The Redis clients and the blob store live on ``app.state`` (made in the lifespan from the
+settings of that moment); stores are cheap views over them, built per request for the caller
+(``PrincipalDep``): a job or model store sees only the caller's records unless the caller is an
+admin.
 
 Every dependency is ``async def`` although none awaits: FastAPI runs a sync dependency in the
 thread pool, and those hand-offs (several per request) cost more than the work itself.
@@ -19,6 +20,7 @@ from fastapi import Depends, Request
 from schemas.settings import Settings, get_settings
 from service.auth import PrincipalDep
 from service.store import JobStore, Keys, ModelStore, Queues
+from service.store.blobs import BlobStore
 
 
 async def current_settings() -> Settings:
@@ -40,6 +42,13 @@ RedisDep = Annotated[redis.Redis, Depends(get_redis)]
 AsyncRedisDep = Annotated[redis.asyncio.Redis, Depends(get_async_redis)]
 
 
+async def get_blob_store(request: Request) -> BlobStore:
+    return request.app.state.blobs  # type: ignore[no-any-return]
+
+
+BlobStoreDep = Annotated[BlobStore, Depends(get_blob_store)]
+
+
 async def get_keys(settings: SettingsDep) -> Keys:
     return Keys(settings.redis_prefix)
 
@@ -48,13 +57,19 @@ KeysDep = Annotated[Keys, Depends(get_keys)]
 
 
 async def get_job_store(
-    r: RedisDep, keys: KeysDep, settings: SettingsDep, principal: PrincipalDep
+    r: RedisDep,
+    keys: KeysDep,
+    settings: SettingsDep,
+    principal: PrincipalDep,
+    blobs: BlobStoreDep,
 ) -> JobStore:
-    return JobStore(r, keys, settings.retention_s, viewer=principal)
+    return JobStore(r, keys, settings.retention_s, viewer=principal, blobs=blobs)
 
 
-async def get_model_store(r: RedisDep, keys: KeysDep, principal: PrincipalDep) -> ModelStore:
-    return ModelStore(r, keys, viewer=principal)
+async def get_model_store(
+    r: RedisDep, keys: KeysDep, principal: PrincipalDep, blobs: BlobStoreDep
+) -> ModelStore:
+    return ModelStore(r, keys, viewer=principal, blobs=blobs)
 
 
 async def get_queues(r: RedisDep, keys: KeysDep) -> Queues:

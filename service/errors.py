@@ -17,6 +17,8 @@ from fastapi.responses import JSONResponse, Response
 from pydantic import ValidationError
 from starlette.exceptions import HTTPException as StarletteHTTPException
 
+from service.store.blobs import BlobStoreUnavailable
+
 log = logging.getLogger(__name__)
 
 #: Longest id echoed back in an error message, characters.
@@ -78,6 +80,20 @@ async def _redis_down(request: Request, exc: Exception) -> JSONResponse:
     )
 
 
+#: Retry-After of an answer refused because the blob store is down, s.
+BLOB_STORE_RETRY_AFTER_S = 5
+
+
+async def _blob_store_down(request: Request, exc: Exception) -> JSONResponse:
+    assert isinstance(exc, BlobStoreUnavailable)
+    log.error("blob store error on %s %s: %s", request.method, request.url.path, exc)
+    return JSONResponse(
+        {"detail": f"the blob store ({exc.store}) is unavailable; try again shortly"},
+        status_code=503,
+        headers={"Retry-After": str(BLOB_STORE_RETRY_AFTER_S)},
+    )
+
+
 async def _internal(request: Request, exc: Exception) -> JSONResponse:
     log.exception("unhandled error on %s %s", request.method, request.url.path, exc_info=exc)
     return JSONResponse({"detail": "internal server error"}, status_code=500)
@@ -88,4 +104,5 @@ def install_error_handlers(app: FastAPI) -> None:
     app.add_exception_handler(StarletteHTTPException, _http_error)
     app.add_exception_handler(redis.ConnectionError, _redis_down)
     app.add_exception_handler(redis.TimeoutError, _redis_down)
+    app.add_exception_handler(BlobStoreUnavailable, _blob_store_down)
     app.add_exception_handler(Exception, _internal)

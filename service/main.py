@@ -1,4 +1,5 @@
-"""The FastAPI application: wiring only (routers, middleware, error handlers, Redis clients).
+"""The FastAPI application: wiring only (routers, middleware, error handlers, Redis clients,
+the blob store).
 
 Run with ``uvicorn service.main:app`` or ``proxpose serve``. Settings are read when the app
 starts (lifespan), not at import, so tests set the environment and clear the settings cache.
@@ -23,6 +24,8 @@ from service.metrics import Metrics, MetricsMiddleware
 from service.ratelimit import SubmissionRateLimitMiddleware
 from service.routes import docs, estimates, health, metrics, models, pages, renders, session
 from service.store import Keys
+from service.store.blobs import open_blob_store
+from service.store.budget import warn_if_unbounded
 
 #: Seconds to wait for a connection to Redis.
 REDIS_CONNECT_TIMEOUT_S = 5.0
@@ -59,7 +62,9 @@ async def lifespan(app: FastAPI) -> AsyncIterator[None]:
     app.state.aredis = redis.asyncio.Redis.from_url(
         url, socket_connect_timeout=REDIS_CONNECT_TIMEOUT_S, health_check_interval=30
     )
+    app.state.blobs = open_blob_store(settings)
     app.state.store_source = (app.state.redis, Keys(settings.redis_prefix))
+    warn_if_unbounded(app.state.redis, "API")
     try:
         yield
     finally:
@@ -79,7 +84,9 @@ def create_app() -> FastAPI:
         redoc_url=None,
     )
     app.state.metrics = Metrics()
-    app.state.metrics.watch_store(lambda: getattr(app.state, "store_source", None))
+    app.state.metrics.watch_store(
+        lambda: getattr(app.state, "store_source", None), lambda: getattr(app.state, "blobs", None)
+    )
     # innermost first: the rate limit needs the principal; authentication and the size limit
     # answer before the body is read; CORS answers preflights before authentication
     app.add_middleware(SubmissionRateLimitMiddleware, settings=get_settings)

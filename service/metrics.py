@@ -1,5 +1,6 @@
-"""Prometheus metrics: HTTP requests of this process, and the queue and job figures of the
-whole deployment read from Redis at scrape time (so every worker's jobs are counted)."""
+"""Prometheus metrics: HTTP requests and blob operations of this process, and the queue, job,
+Redis memory and blob store figures of the whole deployment read from Redis at scrape time (so
+every worker's jobs are counted; the blob census is the last sweep's)."""
 
 from __future__ import annotations
 
@@ -18,9 +19,13 @@ from prometheus_client.registry import Collector
 from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
 from service.store import JobStats, Keys, Queues
+from service.store.blobs import CountingBlobStore
+from service.store.budget import redis_memory
 
 #: Where the collector finds Redis and the key names (None before the app has started).
 StoreSource = Callable[[], tuple[redis.Redis, Keys] | None]
+#: Where it finds this process's blob store (None before the app has started).
+BlobSource = Callable[[], CountingBlobStore | None]
 #: Buckets of the HTTP latency histogram, s.
 HTTP_LATENCY_BUCKETS_S = (0.005, 0.01, 0.025, 0.05, 0.1, 0.25, 0.5, 1.0, 2.5, 5.0, 10.0, 30.0, 60.0)
 
@@ -44,9 +49,12 @@ class Metrics:
             registry=self.registry,
         )
 
-    def watch_store(self, source: StoreSource) -> None:
-        """Also expose the queue, worker and job figures kept in Redis."""
+    def watch_store(self, source: StoreSource, blobs: BlobSource | None = None) -> None:
+        """Also expose the queue, worker, job, memory and blob figures kept in Redis, and the
+        blob operations of this process."""
         self.registry.register(StoreCollector(source))
+        if blobs is not None:
+            self.registry.register(BlobOpsCollector(blobs))
 
 
 class MetricsMiddleware:
@@ -97,6 +105,8 @@ class StoreCollector(Collector):
             queues = Queues(r, keys)
             depths, workers = queues.depths(), queues.live_workers()
             snap = JobStats(r, keys).snapshot()
+            memory = redis_memory(r)
+            census = r.hgetall(keys.blob_census)
         except redis.RedisError:
             up.add_metric([], 0)
             yield up
@@ -110,6 +120,7 @@ class StoreCollector(Collector):
             depth.add_metric([name], n)
         yield depth
         yield GaugeMetricFamily("proxpose_workers", "Live workers.", value=workers)
+        yield from _memory_and_census(memory, census)  # type: ignore[arg-type]
         jobs = CounterMetricFamily(
             "proxpose_jobs", "Jobs finished, by kind and final status.", labels=["kind", "status"]
         )
@@ -128,3 +139,61 @@ class StoreCollector(Collector):
         for kind, buckets in sorted(snap.buckets.items()):
             duration.add_metric([kind], buckets, sum_value=snap.duration_sum_s.get(kind, 0.0))
         yield duration
+
+
+def _memory_and_census(memory: tuple[int, int], census: dict[bytes, bytes]) -> Iterator[Metric]:
+    used, limit = memory
+    yield GaugeMetricFamily("proxpose_redis_used_memory_bytes", "Redis used_memory.", value=used)
+    yield GaugeMetricFamily(
+        "proxpose_redis_maxmemory_bytes", "Redis maxmemory (0: no limit).", value=limit
+    )
+    if not census:
+        return  # no sweep yet
+    figures = {k.decode(): float(v) for k, v in census.items()}
+    yield GaugeMetricFamily(
+        "proxpose_blob_store_objects",
+        "Blobs in the blob store at the last sweep.",
+        value=figures.get("objects", 0.0),
+    )
+    yield GaugeMetricFamily(
+        "proxpose_blob_store_bytes",
+        "Bytes in the blob store at the last sweep.",
+        value=figures.get("bytes", 0.0),
+    )
+    yield CounterMetricFamily(
+        "proxpose_blob_swept", "Blobs deleted by the sweeps.", value=figures.get("swept", 0.0)
+    )
+    yield GaugeMetricFamily(
+        "proxpose_blob_sweep_timestamp_seconds",
+        "When the last sweep ended (Unix time).",
+        value=figures.get("at", 0.0),
+    )
+
+
+class BlobOpsCollector(Collector):
+    """This process's blob store operations (by op and outcome) and bytes moved."""
+
+    def __init__(self, source: BlobSource) -> None:
+        self.source = source
+
+    def collect(self) -> Iterator[Metric]:
+        blobs = self.source()
+        if blobs is None:
+            return
+        ops, written, read = blobs.ops.snapshot()
+        family = CounterMetricFamily(
+            "proxpose_blob_operations",
+            "Blob store operations of this process, by op and outcome (ok, missing, error).",
+            labels=["op", "outcome"],
+        )
+        for (op, outcome), n in sorted(ops.items()):
+            family.add_metric([op, outcome], n)
+        yield family
+        moved = CounterMetricFamily(
+            "proxpose_blob_transferred_bytes",
+            "Bytes this process wrote to and read from the blob store.",
+            labels=["direction"],
+        )
+        moved.add_metric(["write"], written)
+        moved.add_metric(["read"], read)
+        yield moved

@@ -8,6 +8,7 @@ from __future__ import annotations
 import json
 import secrets
 from collections.abc import Iterator
+from pathlib import Path
 
 import pytest
 import redis
@@ -15,6 +16,7 @@ from conftest import RedisServer
 
 from schemas.jobs import Progress
 from service.store import JobStore, Keys, Leases, Reaper
+from service.store.blobs import FileBlobStore
 
 #: Redis database of this module.
 DB = 11
@@ -22,10 +24,10 @@ KEYS = Keys("leasetest")
 
 
 @pytest.fixture
-def store(redis_server: RedisServer) -> Iterator[JobStore]:
+def store(redis_server: RedisServer, tmp_path: Path) -> Iterator[JobStore]:
     r = redis.Redis.from_url(redis_server.url(DB))
     r.flushdb()
-    yield JobStore(r, KEYS, retention_s=3600)
+    yield JobStore(r, KEYS, retention_s=3600, blobs=FileBlobStore(tmp_path))
     r.flushdb()
     r.close()
 

@@ -24,6 +24,7 @@ from schemas.models import ModelPublic
 from schemas.names import DEFAULT_MAX_MODEL_FACES
 from schemas.settings import get_settings
 from service.store import JobStore, Keys, ModelStore, Queues
+from service.store.blobs import open_blob_store
 from worker.engine.exceptions import ImageTooLargeError, ModelTooLargeError
 from worker.engine.images import encode_png
 from worker.engine.posemath import axis_angle_to_matrix, matrix_to_quaternion
@@ -98,7 +99,7 @@ def _register(r: redis.Redis, keys: Keys, data: bytes, faces: int) -> str:
         sha256=sha,
         created_at=datetime.now(UTC),
     )
-    ModelStore(r, keys).put(model, data)
+    ModelStore(r, keys, blobs=open_blob_store(get_settings())).put(model, data)
     return model.id
 
 
@@ -129,7 +130,7 @@ def test_a_worker_renders_and_estimates_a_model_above_the_old_face_limit(
     request = EstimateRequest.model_validate(
         {"camera": CAMERA, "initial_pose": pose(R0, T_TRUE), "options": OPTIONS}
     )
-    store = JobStore(r, keys, retention_s=600)
+    store = JobStore(r, keys, retention_s=600, blobs=open_blob_store(get_settings()))
     job_id = secrets.token_hex(16)
     store.create(
         job_id, model_id, request.model_dump_json(), 3, reference, "", owner="t", timeout_s=600

@@ -32,9 +32,11 @@ def test_every_engine_error_has_its_own_listed_code() -> None:
 
 
 def test_job_codes_are_the_engines_and_the_workers() -> None:
+    from service.store.blobs import BlobStoreUnavailable
     from worker.jobs.models import ModelNotFoundError
 
     worker_codes = {ModelNotFoundError.code, "timeout", "worker_lost", "internal_error"}
+    worker_codes.add(BlobStoreUnavailable.code)  # the blob store, down or full
     assert set(get_args(JobErrorCode)) == set(get_args(EngineErrorCode)) | worker_codes
 
 

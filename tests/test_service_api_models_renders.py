@@ -29,6 +29,7 @@ from schemas.models import ModelPublic
 from schemas.settings import get_settings
 from service.main import create_app
 from service.store import ModelStore
+from service.store.blobs import model_file_name, open_blob_store
 
 CUBE_OBJ = b"""# unit cube
 v 0 0 0
@@ -257,11 +258,17 @@ def test_model_upload_is_content_addressed(client: TestClient, r: redis.Redis) -
     assert first.headers["location"] == f"/v1/models/{model['id']}"
     again = client.post("/v1/models", files={"file": ("other.obj", CUBE_OBJ)})
     assert again.status_code == 200 and again.json()["id"] == model["id"]
-    assert ModelStore(r, KEYS).data(model["id"]) == CUBE_OBJ  # workers fetch it from Redis
+    # workers fetch it from the blob store; Redis keeps the metadata only
+    blobs = open_blob_store(get_settings())
+    assert ModelStore(r, KEYS, blobs=blobs).data(model["id"]) == CUBE_OBJ
+    assert not r.exists(KEYS.model_data(model["id"]))
+    blob = model_file_name(model["id"], model["sha256"])
+    assert blobs.get(blob) == CUBE_OBJ
     assert [m["id"] for m in client.get("/v1/models").json()["items"]] == [model["id"]]
     assert client.get(f"/v1/models/{model['id']}").json() == model
     assert client.delete(f"/v1/models/{model['id']}").status_code == 204
     assert client.get(f"/v1/models/{model['id']}").status_code == 404
+    assert blobs.get(blob) is None  # the file went with its last owner
 
 
 def test_builtin_model_cannot_be_deleted(client: TestClient, r: redis.Redis) -> None:
@@ -278,7 +285,7 @@ def test_builtin_model_cannot_be_deleted(client: TestClient, r: redis.Redis) -> 
         created_at=datetime.now(UTC),
         builtin=True,
     )
-    ModelStore(r, KEYS).put(demo, b"glb")
+    ModelStore(r, KEYS, blobs=open_blob_store(get_settings())).put(demo, b"glb")
     assert client.get("/v1/models/demo-sat").json()["builtin"] is True
     assert client.delete("/v1/models/demo-sat").status_code == 409
 

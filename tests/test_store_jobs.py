@@ -6,12 +6,14 @@ from __future__ import annotations
 import secrets
 import threading
 from collections.abc import Iterator
+from pathlib import Path
 
 import pytest
 import redis
 from conftest import RedisServer
 
 from service.store import JobStore, Keys
+from service.store.blobs import FileBlobStore
 from service.store.jobs import ActiveJobsLimitError
 
 DB = 9
@@ -19,10 +21,10 @@ THREADS = 24
 
 
 @pytest.fixture(name="store")
-def job_store(redis_server: RedisServer) -> Iterator[JobStore]:
+def job_store(redis_server: RedisServer, tmp_path: Path) -> Iterator[JobStore]:
     r = redis.Redis.from_url(redis_server.url(DB))
     r.flushdb()
-    yield JobStore(r, Keys("storetest"), retention_s=3600)
+    yield JobStore(r, Keys("storetest"), retention_s=3600, blobs=FileBlobStore(tmp_path))
     r.flushdb()
     r.close()
 

@@ -31,6 +31,11 @@ _EXTRA_COMMANDS: list[tuple[str, str, str]] = [
     ("worker", "worker.jobs.runner", "run an RQ worker against PROXPOSE_REDIS_URL"),
     ("bench", "worker.bench.cli", "accuracy and speed against the baselines"),
     ("loadtest", "service.loadtest", "load-test a running service"),
+    (
+        "migrate-blobs",
+        "service.migrate_blobs",
+        "move the bytes an older deployment kept in Redis to the blob store, then sweep it",
+    ),
 ]
 
 

@@ -8,7 +8,7 @@ import re
 import secrets
 from typing import Annotated, Any
 
-from fastapi import APIRouter, File, Form, Header, Query, Response, UploadFile
+from fastapi import APIRouter, File, Form, Header, Query, Request, Response, UploadFile
 from fastapi.responses import StreamingResponse
 from pydantic import ValidationError
 from starlette.exceptions import HTTPException
@@ -271,23 +271,49 @@ def cancel_estimate(
     return estimate_public(after)
 
 
+#: Cache-Control of an artifact: its URL names one job's output, which never changes.
+ARTIFACT_CACHE_CONTROL = "private, max-age=86400, immutable"
+
+
+def _etag_matches(if_none_match: str | None, etag: str) -> bool:
+    if if_none_match is None:
+        return False
+    tags = {t.strip().removeprefix("W/") for t in if_none_match.split(",")}
+    return "*" in tags or etag in tags
+
+
 @router.get(
     "/{job_id}/artifacts/{name}",
     response_class=Response,
     summary="Download a PNG artifact of a finished job",
-    responses={200: {"content": {"image/png": {}}}, 404: {"description": "No such artifact."}},
+    description="Answers with an `ETag` (the PNG's SHA-256); `If-None-Match` with it answers "
+    "304. An artifact whose job has expired (after the retention) is 404.",
+    responses={
+        200: {"content": {"image/png": {}}},
+        304: {"description": "Not modified (If-None-Match)."},
+        404: {"description": "No such artifact (or it expired)."},
+        503: {"description": "The blob store is unavailable."},
+    },
 )
-def get_artifact(job_id: str, name: str, jobs: JobStoreDep, settings: SettingsDep) -> Response:
+def get_artifact(
+    job_id: str, name: str, request: Request, jobs: JobStoreDep, settings: SettingsDep
+) -> Response:
     record = _get_or_404(jobs, job_id, settings)
     stem = name.removesuffix(".png")
-    png = jobs.get_artifact(job_id, stem) if stem in record.artifacts else None
+    headers = {"Cache-Control": ARTIFACT_CACHE_CONTROL}
+    known = jobs.artifact_etag(record, stem)
+    if known is not None and _etag_matches(request.headers.get("if-none-match"), f'"{known}"'):
+        return Response(status_code=304, headers=headers | {"ETag": f'"{known}"'})
+    png = jobs.get_artifact(record, stem)
     if png is None:
         names = ", ".join(record.artifacts) or "none yet"
         raise HTTPException(
             404, detail=f"estimate '{job_id}' has no artifact '{echo(name)}' (artifacts: {names})"
         )
-    headers = {"Cache-Control": "private, max-age=86400, immutable"}
-    return Response(png, media_type="image/png", headers=headers)
+    etag = f'"{known or hashlib.sha256(png).hexdigest()}"'
+    if _etag_matches(request.headers.get("if-none-match"), etag):
+        return Response(status_code=304, headers=headers | {"ETag": etag})
+    return Response(png, media_type="image/png", headers=headers | {"ETag": etag})
 
 
 _EVENTS_DOC: dict[int | str, dict[str, Any]] = {

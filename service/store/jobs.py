@@ -1,5 +1,10 @@
 """Estimate jobs in Redis: one hash per job, indexes for listing, the image, the artifacts.
 
+The bytes are not in Redis: the image and the artifacts are blobs (``service.store.blobs``),
+written before the Redis change that refers to them, so that nothing refers to a blob that is
+not whole; the hash records their names and hashes. Jobs of an older deployment whose bytes are
+still in Redis are read from there (until ``proxpose migrate-blobs`` moves them).
+
 The status moves queued → running → succeeded | failed | cancelled; the one way back is a
 reaper putting a running job whose worker died back in the queue (``service.store.leases``).
 Every change goes through :mod:`service.store.transitions`, a WATCH/MULTI check-and-set, so
@@ -13,7 +18,9 @@ it is an admin; the workers' stores see everything.
 
 from __future__ import annotations
 
+import hashlib
 import json
+import logging
 from collections.abc import Sequence
 from typing import Any
 
@@ -22,10 +29,18 @@ from redis.client import Pipeline
 
 from schemas.jobs import JobError
 from service.store.access import Principal
+from service.store.blobs.base import (
+    BlobStore,
+    BlobStoreError,
+    job_artifact_name,
+    job_image_name,
+)
 from service.store.keys import Keys
 from service.store.queues import Queues
 from service.store.records import JobRecord, text, utc_now
 from service.store.transitions import Current, Transitions
+
+log = logging.getLogger(__name__)
 
 #: Positions scanned at most to fill one listing page (expired jobs are skipped and pruned).
 LIST_SCAN_MAX = 1000
@@ -50,7 +65,8 @@ class ActiveJobsLimitError(Exception):
 
 
 class JobStore:
-    """Reads and writes estimate jobs. ``r`` is a bytes-returning Redis client."""
+    """Reads and writes estimate jobs. ``r`` is a bytes-returning Redis client; ``blobs`` holds
+    the images and artifacts (needed by the methods that read or write those)."""
 
     def __init__(
         self,
@@ -59,14 +75,22 @@ class JobStore:
         retention_s: int,
         viewer: Principal | None = None,
         queues: Queues | None = None,
+        blobs: BlobStore | None = None,
     ) -> None:
         self.r = r
         self.keys = keys
         self.retention_s = retention_s
         self.viewer = viewer
+        self._blobs = blobs
         self.queues = queues if queues is not None else Queues(r, keys)
         self.transitions = Transitions(r, keys, retention_s)
         self._reserve = r.register_script(_RESERVE)
+
+    @property
+    def blobs(self) -> BlobStore:
+        if self._blobs is None:
+            raise RuntimeError("this JobStore was made without a blob store")
+        return self._blobs
 
     # ------------------------------------------------------------------ create and read
     def create(
@@ -82,7 +106,8 @@ class JobStore:
         timeout_s: int,
         max_active: int = 0,
     ) -> JobRecord:
-        """Store a new queued job with its image and enqueue it.
+        """Store a new queued job with its image and enqueue it. The image goes to the blob
+        store first: if that fails (BlobStoreUnavailable), nothing is written or enqueued.
 
         Raises ActiveJobsLimitError when ``max_active`` > 0 and the owner has that many queued
         or running jobs. The check and the job's place in the owner's active set are one Lua
@@ -106,11 +131,14 @@ class JobStore:
             rq_id=rq_id,
             timeout_s=timeout_s,
             fingerprint=fingerprint,
+            image_blob=job_image_name(job_id),
         )
+        written = False
         try:
+            self.blobs.put(job_image_name(job_id), image)
+            written = True
             with self.r.pipeline(transaction=True) as pipe:
                 pipe.multi()  # explicit: RQ's enqueue checks for it
-                pipe.set(self.keys.job_image(job_id), image)
                 pipe.hset(self.keys.job(job_id), mapping=record.queued_hash())  # type: ignore[arg-type]
                 pipe.zadd(self.keys.jobs_index, {job_id: seq})
                 pipe.zadd(self.keys.owner_jobs(owner), {job_id: seq})
@@ -119,6 +147,8 @@ class JobStore:
                 pipe.execute()
         except BaseException:
             self.r.srem(active, job_id)  # give the reserved place back
+            if written:
+                self._forget_blobs([job_image_name(job_id)])
             raise
         return record
 
@@ -130,11 +160,25 @@ class JobStore:
         record = JobRecord.from_hash(raw)  # type: ignore[arg-type]
         return record if self.viewer is None or self.viewer.can_see(record.owner) else None
 
-    def get_image(self, job_id: str) -> bytes | None:
-        return self.r.get(self.keys.job_image(job_id))  # type: ignore[return-value]
+    def get_image(self, record: JobRecord) -> bytes | None:
+        """The job's reference image (None once the job has ended)."""
+        if record.image_blob:
+            return self.blobs.get(record.image_blob)
+        return self.r.get(self.keys.job_image(record.id))  # type: ignore[return-value]
 
-    def get_artifact(self, job_id: str, name: str) -> bytes | None:
-        return self.r.get(self.keys.job_artifact(job_id, name))  # type: ignore[return-value]
+    def artifact_etag(self, record: JobRecord, name: str) -> str | None:
+        """The SHA-256 of an artifact, known without reading it (None for an older job's)."""
+        ref = record.artifact_blobs.get(name)
+        return str(ref["sha256"]) if ref else None
+
+    def get_artifact(self, record: JobRecord, name: str) -> bytes | None:
+        """An artifact's PNG; None if the job has no such artifact or its blob is gone."""
+        if name not in record.artifacts:
+            return None
+        ref = record.artifact_blobs.get(name)
+        if ref is not None:
+            return self.blobs.get(str(ref["blob"]))
+        return self.r.get(self.keys.job_artifact(record.id, name))  # type: ignore[return-value]
 
     def list_page(self, limit: int, before_seq: int | None) -> tuple[list[JobRecord], int | None]:
         """Up to ``limit`` jobs, newest first, created before ``before_seq``; and the cursor of
@@ -201,7 +245,12 @@ class JobStore:
         traceback: str | None = None,
     ) -> bool:
         """Move the job to a terminal ``status``; False if it was not in ``from_statuses`` or,
-        with ``attempt``, if that attempt is no longer the running one (fenced off)."""
+        with ``attempt``, if that attempt is no longer the running one (fenced off).
+
+        The artifacts are written to the blob store first (BlobStoreUnavailable if it fails,
+        and nothing changes); after the change the image blob goes, or, when the change was
+        refused, the artifacts just written."""
+        refs = self._put_artifacts(job_id, attempt, artifacts or {})
         fields = {"status": status, "finished_at": utc_now()}
         if error is not None:
             fields["error"] = error.model_dump_json()
@@ -209,6 +258,7 @@ class JobStore:
             fields["result"] = result_json
         if artifacts:
             fields["artifacts"] = json.dumps(list(artifacts))
+            fields["artifact_blobs"] = json.dumps(refs)
         if traceback:
             fields["traceback"] = traceback  # for operators (redis-cli); never served
 
@@ -220,14 +270,38 @@ class JobStore:
             )
 
         def extra(pipe: Pipeline, current: Current) -> None:
-            for name, png in (artifacts or {}).items():
-                pipe.set(self.keys.job_artifact(job_id, name), png, ex=self.retention_s)
             self.transitions.release(pipe, job_id, current)
 
         done = self.transitions.apply(job_id, guard, fields, extra, expire=True) is not None
         if done:
+            self._forget_blobs([job_image_name(job_id)])
             self.publish(job_id, "status", {"status": status})
+        else:
+            self._forget_blobs([str(ref["blob"]) for ref in refs.values()])
         return done
+
+    def _put_artifacts(
+        self, job_id: str, attempt: int | None, artifacts: dict[str, bytes]
+    ) -> dict[str, dict[str, object]]:
+        refs: dict[str, dict[str, object]] = {}
+        for name, png in artifacts.items():
+            blob = job_artifact_name(job_id, attempt if attempt is not None else 0, name)
+            self.blobs.put(blob, png, "image/png")
+            refs[name] = {
+                "blob": blob,
+                "sha256": hashlib.sha256(png).hexdigest(),
+                "bytes": len(png),
+            }
+        return refs
+
+    def _forget_blobs(self, names: list[str]) -> None:
+        """Delete blobs nothing refers to any more; on failure the sweeper deletes them later."""
+        if self._blobs is None or not names:
+            return
+        try:
+            self._blobs.delete(names)
+        except BlobStoreError as exc:
+            log.warning("could not delete %d blobs now (%s); the sweep will", len(names), exc)
 
     def request_cancel(self, job_id: str) -> JobRecord | None:
         """Cancel a queued job now (and take it out of the queue), or ask a running one to

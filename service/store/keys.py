@@ -17,11 +17,12 @@ class Keys:
         return f"{self.prefix}:job:{job_id}"
 
     def job_image(self, job_id: str) -> str:
-        """String: the uploaded reference image, until the job ends."""
+        """String: the uploaded reference image of a job of an older deployment (new jobs keep
+        it in the blob store), until the job ends."""
         return f"{self.prefix}:job:{job_id}:image"
 
     def job_artifact(self, job_id: str, name: str) -> str:
-        """String: one PNG artifact of a finished job."""
+        """String: one PNG artifact of a job of an older deployment (now in the blob store)."""
         return f"{self.prefix}:job:{job_id}:artifact:{name}"
 
     def job_cancel(self, job_id: str) -> str:
@@ -107,13 +108,26 @@ class Keys:
         return f"{self.prefix}:model:{model_id}:owners"
 
     def model_data(self, model_id: str) -> str:
-        """String: the model file's bytes."""
+        """String: the model file's bytes, for a model of an older deployment (now in the
+        blob store)."""
         return f"{self.prefix}:model:{model_id}:data"
 
     @property
     def models_index(self) -> str:
         """Sorted set: model ids scored by registration time."""
         return f"{self.prefix}:models"
+
+    # -- blobs
+    @property
+    def blob_sweep_lock(self) -> str:
+        """String with a TTL: taken by the one worker that sweeps the blob store in a period."""
+        return f"{self.prefix}:blobs:sweep"
+
+    @property
+    def blob_census(self) -> str:
+        """Hash: objects, bytes, swept (deleted so far), at: the blob store as the last sweep
+        found it (what /metrics exports)."""
+        return f"{self.prefix}:blobs:census"
 
     # -- statistics
     @property

@@ -1,14 +1,19 @@
-"""Models in Redis: metadata hash + file bytes per id, the owners of each, and indexes.
+"""Models: metadata hash per id in Redis, the owners of each, indexes; the file in the blob store.
 
 Ids are content addresses (a SHA-256 prefix), so the same bytes registered twice are stored once;
 each API key that registers them becomes an owner, under the name it gave. A store built for a
 ``viewer`` sees the built-in models and the ones the viewer owns (an admin sees all), and a
 viewer's delete only drops its ownership: the file goes when its last owner lets go. The
 built-in demo satellite has the fixed id ``demo-sat`` and is (re)registered by workers.
+
+The file is the blob ``models/<id>/<sha256>``, written before the metadata that refers to it and
+deleted after the last owner lets go (the sweeper deletes it if that delete fails). A model of an
+older deployment whose bytes are still in Redis (``model:<id>:data``) is read from there.
 """
 
 from __future__ import annotations
 
+import logging
 import time
 
 import redis
@@ -16,16 +21,33 @@ import redis
 from schemas.models import ModelPublic
 from schemas.names import DEMO_MODEL_ID
 from service.store.access import Principal
+from service.store.blobs.base import BlobStore, BlobStoreError, model_file_name
 from service.store.keys import Keys
+
+log = logging.getLogger(__name__)
 
 
 class ModelStore:
-    """Reads and writes registered models. ``r`` is a bytes-returning Redis client."""
+    """Reads and writes registered models. ``r`` is a bytes-returning Redis client; ``blobs``
+    holds the files (needed by ``data``, ``put`` and ``delete``)."""
 
-    def __init__(self, r: redis.Redis, keys: Keys, viewer: Principal | None = None) -> None:
+    def __init__(
+        self,
+        r: redis.Redis,
+        keys: Keys,
+        viewer: Principal | None = None,
+        blobs: BlobStore | None = None,
+    ) -> None:
         self.r = r
         self.keys = keys
         self.viewer = viewer
+        self._blobs = blobs
+
+    @property
+    def blobs(self) -> BlobStore:
+        if self._blobs is None:
+            raise RuntimeError("this ModelStore was made without a blob store")
+        return self._blobs
 
     def _sees_all(self) -> bool:
         return self.viewer is None or self.viewer.admin
@@ -47,7 +69,14 @@ class ModelStore:
         return self.get(model_id) is not None
 
     def data(self, model_id: str) -> bytes | None:
-        return self.r.get(self.keys.model_data(model_id))  # type: ignore[return-value]
+        """The model's file (None if the model or its file is gone)."""
+        meta = self._meta(model_id)
+        if meta is None:
+            return None
+        data = self.blobs.get(model_file_name(model_id, meta.sha256))
+        if data is None:  # registered by an older deployment: still in Redis
+            data = self.r.get(self.keys.model_data(model_id))  # type: ignore[assignment]
+        return data
 
     def owned(self, owner: str) -> int:
         """How many models ``owner`` has registered."""
@@ -76,19 +105,24 @@ class ModelStore:
     def put(self, model: ModelPublic, data: bytes, owner: str | None = None) -> bool:
         """Register ``model`` with its file bytes (kept if the same content is there) and make
         ``owner`` one of its owners under ``model.name``; True if something new was written
-        (the content, or this owner's ownership)."""
+        (the content, or this owner's ownership). The file goes to the blob store first
+        (BlobStoreUnavailable if that fails, and nothing is registered)."""
         current = self._meta(model.id)
         new_content = current is None or current.sha256 != model.sha256
+        if new_content:
+            self.blobs.put(model_file_name(model.id, model.sha256), data)
         now = time.time()
         pipe = self.r.pipeline()
         if new_content:
-            pipe.set(self.keys.model_data(model.id), data)
+            pipe.delete(self.keys.model_data(model.id))  # an older deployment's copy
             pipe.hset(self.keys.model(model.id), "meta", model.model_dump_json())
             pipe.zadd(self.keys.models_index, {model.id: now})
         if owner is not None:
             pipe.hsetnx(self.keys.model_owners(model.id), owner, model.name)
             pipe.zadd(self.keys.owner_models(owner), {model.id: now}, nx=True)
         results = pipe.execute()
+        if new_content and current is not None:  # replaced (the demo model, regenerated)
+            self._forget(model_file_name(model.id, current.sha256))
         return new_content or (owner is not None and bool(results[-2]))
 
     def delete(self, model_id: str) -> bool:
@@ -106,6 +140,7 @@ class ModelStore:
                         pipe.unwatch()
                         return False
                     remaining = [o for o in owners if o not in drop]
+                    meta = None if remaining else self._meta(model_id)
                     pipe.multi()
                     for owner in drop:
                         pipe.hdel(owners_key, owner)
@@ -115,9 +150,19 @@ class ModelStore:
                         pipe.delete(owners_key)
                         pipe.zrem(self.keys.models_index, model_id)
                     results = pipe.execute()
+                    if meta is not None:
+                        self._forget(model_file_name(model_id, meta.sha256))
                     return any(bool(x) for x in results)
                 except redis.WatchError:
                     continue
+
+    def _forget(self, name: str) -> None:
+        if self._blobs is None:
+            return  # the sweeper deletes it
+        try:
+            self._blobs.delete([name])
+        except BlobStoreError as exc:
+            log.warning("could not delete blob %s now (%s); the sweep will", name, exc)
 
     def _meta(self, model_id: str) -> ModelPublic | None:
         raw = self.r.hget(self.keys.model(model_id), "meta")

@@ -1,4 +1,8 @@
-"""A job as stored in its Redis hash, decoded: strings and JSON, no behaviour."""
+"""A job as stored in its Redis hash, decoded: strings and JSON, no behaviour.
+
+The hash holds the job's metadata and result; its bytes (image, artifacts) are in the blob store
+(``service.store.blobs``) under the names it records.
+"""
 
 from __future__ import annotations
 
@@ -41,6 +45,10 @@ class JobRecord:
     result: str | None = None
     error: dict[str, str] | None = None
     artifacts: list[str] = field(default_factory=list)
+    #: Where the bytes are: the image's blob name, and per artifact {"blob", "sha256",
+    #: "bytes"}; empty for a job of an older deployment, whose bytes are still in Redis.
+    image_blob: str | None = None
+    artifact_blobs: dict[str, dict[str, Any]] = field(default_factory=dict)
     worker: str | None = None
     cancel_requested: bool = False
     fingerprint: str = ""
@@ -67,6 +75,8 @@ class JobRecord:
             result=h.get("result") or None,
             error=json.loads(h["error"]) if h.get("error") else None,
             artifacts=json.loads(h.get("artifacts") or "[]"),
+            image_blob=h.get("image_blob") or None,
+            artifact_blobs=json.loads(h.get("artifact_blobs") or "{}"),
             worker=h.get("worker") or None,
             cancel_requested=h.get("cancel_requested") == "1",
             fingerprint=h.get("fingerprint", ""),
@@ -89,6 +99,7 @@ class JobRecord:
             "rq_id": self.rq_id,
             "timeout_s": str(self.timeout_s),
             "fingerprint": self.fingerprint,
+            **({"image_blob": self.image_blob} if self.image_blob else {}),
         }
 
     @property

@@ -1,8 +1,11 @@
 """The estimate job (RQ entry point, enqueued by name by the API): run the engine on a stored job.
 
-A job reads everything it needs from Redis (request, image, model bytes) and writes everything
-back there (progress, result, artifacts), so a worker never needs the API's disk: workers on
-other machines share only Redis. Workers run jobs in-process (see :mod:`worker.jobs.runner`).
+A job reads the request from Redis and the image and model bytes from the blob store, and
+writes its progress and result to Redis and its artifacts to the blob store, so a worker never
+needs the API's disk: workers on other machines share Redis and the blob store. A blob store
+that is down or full is retried like a lost worker (the job goes back to the queue, after a
+pause) and fails the job with ``store_unavailable`` on its last attempt. Workers run jobs
+in-process (see :mod:`worker.jobs.runner`).
 """
 
 from __future__ import annotations
@@ -21,13 +24,18 @@ from schemas.jobs import JobError, Progress
 from schemas.settings import Settings
 from service.logs import log_context
 from service.store import JobRecord, JobStats, JobStore, Leases, ModelStore, Reaper
+from service.store.blobs import BlobStoreUnavailable
 from worker.engine.exceptions import EstimationCancelled, ProxposeError
 from worker.entry import run_estimate
-from worker.jobs.context import job_context, worker_name
+from worker.jobs.context import job_blobs, job_context, worker_name
 from worker.jobs.lease import CancelFlag, LeaseKeeper
 from worker.jobs.models import fetch_model_file
 
 log = logging.getLogger(__name__)
+
+#: Pause before a job that found the blob store unavailable goes back to the queue, per
+#: attempt so far, s (a store restarting has time to come back before the next attempt).
+STORE_RETRY_PAUSE_S = 2.0
 
 
 def _interruption(exc: BaseException) -> BaseException | None:
@@ -46,7 +54,8 @@ def _interruption(exc: BaseException) -> BaseException | None:
 def run_estimate_job(job_id: str) -> None:
     """Run the estimate stored as job ``job_id`` (RQ entry point, enqueued by the API)."""
     settings, r, keys = job_context()
-    store = JobStore(r, keys, settings.retention_s)
+    blobs = job_blobs(settings)
+    store = JobStore(r, keys, settings.retention_s, blobs=blobs)
     leases = Leases(store, settings.job_lease_s)
     job = get_current_job()
     worker = worker_name()
@@ -63,14 +72,15 @@ def run_estimate_job(job_id: str) -> None:
         with LeaseKeeper(leases, job_id, attempt) as keeper:
             flag = CancelFlag(leases, keeper, timeout_s)
             try:
-                status, code = _estimate(store, flag, record, ModelStore(r, keys), settings)
+                models = ModelStore(r, keys, blobs=blobs)
+                status, code = _estimate(store, flag, record, models, settings)
             except BaseException as exc:
                 status, code = _failed(store, leases, flag, record, exc, timeout_s, settings)
                 if not isinstance(exc, Exception) or code == "internal_error":
                     raise  # a stop signal ends the worker; RQ keeps internal errors too
             finally:
                 log.info("job %s: attempt %d ended: %s %s", job_id, attempt, status, code or "")
-                if status not in ("superseded", "stopped"):
+                if status not in ("superseded", "stopped", "retried"):
                     JobStats(r, keys).record("estimate", status, time.monotonic() - t0, code)
 
 
@@ -89,7 +99,7 @@ def _estimate(
             flag.keeper.lost.set()
 
     request = EstimateRequest.model_validate_json(record.request)
-    image = store.get_image(job_id)
+    image = store.get_image(record)
     if image is None:
         raise ProxposeError("the job's image is missing from the store")
     model_path = fetch_model_file(models, record.model_id, settings.data_dir)
@@ -155,6 +165,8 @@ def _failed(
             traceback=tb,
         )
         return "failed", "timeout"
+    if isinstance(exc, BlobStoreUnavailable):
+        return _store_unavailable(store, leases, record, attempt, exc, settings)
     if isinstance(exc, ProxposeError):
         _finish(store, record, attempt, "failed", error=JobError(code=exc.code, message=str(exc)))
         return "failed", exc.code
@@ -165,12 +177,44 @@ def _failed(
     return "failed", "internal_error"
 
 
+def _store_unavailable(
+    store: JobStore,
+    leases: Leases,
+    record: JobRecord,
+    attempt: int,
+    exc: BlobStoreUnavailable,
+    settings: Settings,
+) -> tuple[str, str | None]:
+    """The blob store failed: queue the job again after a pause, or fail it on its last
+    attempt (a store down for good must not keep a job forever)."""
+    if attempt < settings.job_max_attempts:
+        log.warning("job %s: attempt %d: %s; it goes back to the queue", record.id, attempt, exc)
+        time.sleep(STORE_RETRY_PAUSE_S * attempt)
+        why = "the blob store is unavailable"
+        _give_back(leases, store, record.id, attempt, settings.job_max_attempts, why)
+        return "retried", None
+    log.error("job %s: attempt %d: %s; no attempt left", record.id, attempt, exc)
+    message = (
+        f"the blob store ({exc.store}) was unavailable (down or full) on each of the job's "
+        f"{attempt} attempts"
+    )
+    error = JobError(code="store_unavailable", message=message)
+    _finish(store, record, attempt, "failed", error=error)
+    return "failed", "store_unavailable"
+
+
 def _give_back(
-    leases: Leases, store: JobStore, job_id: str, attempt: int, max_attempts: int
+    leases: Leases,
+    store: JobStore,
+    job_id: str,
+    attempt: int,
+    max_attempts: int,
+    why: str = "its worker is stopping",
 ) -> None:
-    """Put the job of a stopping worker back in the queue now, instead of a lease later."""
+    """Put the job back in the queue now (a stopping worker, a blob store outage), instead of
+    when its lease lapses."""
     try:
         if leases.drop(job_id, attempt):
-            Reaper(store, max_attempts).recover(job_id, why="its worker is stopping")
+            Reaper(store, max_attempts).recover(job_id, why=why)
     except redis.RedisError as exc:  # the lease lapses and a reaper requeues it
         log.warning("job %s: could not requeue it now (%s); a reaper will", job_id, exc)

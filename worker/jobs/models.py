@@ -1,6 +1,7 @@
-"""The model files jobs need: a cache on the worker's disk by content hash, filled from Redis.
+"""The model files jobs need: a cache on the worker's disk by content hash, filled from the
+blob store.
 
-A job reads a registered model's bytes from Redis once per worker and keeps them under
+A job reads a registered model's bytes from the blob store once per worker and keeps them under
 ``data_dir/cache/models/<sha256>.<format>``; the engine caches the loaded model per process.
 The built-in demo satellite is registered by every worker when it starts.
 """
@@ -16,6 +17,7 @@ import redis
 from schemas.models import ModelPublic
 from schemas.names import DEMO_MODEL_ID
 from service.store import Keys, ModelStore
+from service.store.blobs import BlobStore, model_file_name
 from worker.engine.exceptions import ProxposeError
 from worker.files import write_atomic
 
@@ -32,7 +34,8 @@ def model_cache_path(data_dir: Path, model: ModelPublic) -> Path:
 
 
 def fetch_model_file(models: ModelStore, model_id: str, data_dir: Path) -> Path:
-    """The local path of a registered model's file, downloaded from Redis on first use."""
+    """The local path of a registered model's file, downloaded from the blob store on first
+    use (BlobStoreUnavailable if it is down)."""
     meta = models.get(model_id)
     if meta is None:
         raise ModelNotFoundError(f"model '{model_id}' is not registered (was it deleted?)")
@@ -46,18 +49,23 @@ def fetch_model_file(models: ModelStore, model_id: str, data_dir: Path) -> Path:
     return path
 
 
-def register_demo_model(r: redis.Redis, keys: Keys, data_dir: Path) -> ModelPublic:
-    """Register the demo satellite as 'demo-sat' (generated on first use; idempotent)."""
+def register_demo_model(
+    r: redis.Redis, keys: Keys, data_dir: Path, blobs: BlobStore
+) -> ModelPublic:
+    """Register the demo satellite as 'demo-sat' (generated on first use; idempotent). Its file
+    is written to the blob store every time (atomic, same bytes), so a store that lost it, or
+    a deployment that kept it in Redis, has it again (BlobStoreUnavailable if it is down)."""
     from worker.demo.satellite import DEMO_MODEL_NAME, demo_satellite_path
     from worker.engine.meshes import load_model
 
     path = demo_satellite_path(Path(data_dir))
     data = path.read_bytes()
     sha = hashlib.sha256(data).hexdigest()
-    models = ModelStore(r, keys)
+    models = ModelStore(r, keys, blobs=blobs)
     current = models.get(DEMO_MODEL_ID)
     if current is not None and current.sha256 == sha:
         meta = current
+        blobs.put(model_file_name(DEMO_MODEL_ID, sha), data)
     else:
         loaded = load_model(path)
         meta = ModelPublic(

@@ -14,9 +14,10 @@ from rq.timeouts import JobTimeoutException
 
 from schemas.render import RenderRequest
 from service.store import JobStats, ModelStore
+from service.store.blobs import BlobStoreUnavailable
 from worker.engine.exceptions import ProxposeError
 from worker.entry import render_png
-from worker.jobs.context import job_context
+from worker.jobs.context import job_blobs, job_context
 from worker.jobs.models import fetch_model_file
 
 log = logging.getLogger(__name__)
@@ -32,12 +33,16 @@ def run_render_job(render_id: str, model_id: str, request_json: str) -> None:
     outcome: dict[str, object] = {"status": "failed"}
     try:
         request = RenderRequest.model_validate_json(request_json)
-        path = fetch_model_file(ModelStore(r, keys), model_id, settings.data_dir)
+        models = ModelStore(r, keys, blobs=job_blobs(settings))
+        path = fetch_model_file(models, model_id, settings.data_dir)
         png = render_png(path, request)
         r.set(keys.render_png(render_id), png, ex=RENDER_RESULT_TTL_S)
         outcome = {"status": "succeeded"}
     except ProxposeError as exc:
         outcome["error"] = {"code": exc.code, "message": str(exc)}
+    except BlobStoreUnavailable as exc:
+        message = f"the blob store ({exc.store}) is unavailable; try again shortly"
+        outcome["error"] = {"code": exc.code, "message": message}
     except JobTimeoutException:
         message = f"the render ran longer than {settings.render_timeout_s:g} s"
         outcome["error"] = {"code": "timeout", "message": message}

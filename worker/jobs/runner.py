@@ -11,7 +11,9 @@ Because a job runs in the worker process, a crash of the job (segfault, out of m
 crash of the worker. The job survives it: its lease lapses and a reaper requeues it for another
 worker (``service.store.leases``). Every worker runs that reaper in a maintenance thread, which
 also keeps the worker's own RQ heartbeat short while a job runs, so that a dead worker leaves
-``/readyz`` within WORKER_TTL_S.
+``/readyz`` within WORKER_TTL_S, and sweeps the blob store (one worker per ``blob_sweep_s``:
+``service.store.blobs.sweeper``). A worker that starts while the blob store is down still
+serves; it registers the demo model once the store answers.
 """
 
 from __future__ import annotations
@@ -30,6 +32,7 @@ if TYPE_CHECKING:
 
     from schemas.models import ModelPublic
     from schemas.settings import Settings
+    from service.store.blobs import BlobStore
 
 log = logging.getLogger(__name__)
 
@@ -59,8 +62,9 @@ def run(args: argparse.Namespace) -> int:
     from schemas.settings import get_settings
     from service.logs import configure_logging
     from service.store import Keys, Queues
+    from service.store.budget import warn_if_unbounded
     from worker.entry import init_renderer_backend
-    from worker.jobs.models import register_demo_model
+    from worker.jobs.context import job_blobs
 
     settings = get_settings()
     configure_logging(settings.log_format, replace=True)  # not the CLI's text handler
@@ -69,13 +73,14 @@ def run(args: argparse.Namespace) -> int:
     if r is None:
         return 1
     keys = Keys(settings.redis_prefix)
+    warn_if_unbounded(r, "worker")
     if settings.worker_nice > 0:
         os.nice(settings.worker_nice)  # before the renderer's threads start: they inherit it
     variant = init_renderer_backend()
-    demo = register_demo_model(r, keys, settings.data_dir)
-    log.info("renderer variant %s; model '%s' registered", variant, demo.id)
-    if not args.no_warmup:
-        _warm_up(settings.data_dir, demo)
+    demo = DemoRegistration(r, keys, settings)
+    log.info("renderer variant %s", variant)
+    if demo.register() and demo.model is not None and not args.no_warmup:
+        _warm_up(settings.data_dir, demo.model)
     _forget_dead_local_workers(r)
     worker = _worker_class()(
         Queues(r, keys).all(),
@@ -84,7 +89,7 @@ def run(args: argparse.Namespace) -> int:
         serializer=JSONSerializer,
         worker_ttl=WORKER_TTL_S,
     )
-    with Maintenance(worker, r, settings):
+    with Maintenance(worker, r, settings, job_blobs(settings), demo):
         worker.work(burst=args.burst, logging_level="INFO")
     return 0
 
@@ -119,17 +124,56 @@ def _worker_class() -> type[Any]:
     return ProxposeWorker
 
 
+class DemoRegistration:
+    """The demo model's registration, retried until the blob store takes its file."""
+
+    def __init__(self, r: redis.Redis, keys: Any, settings: Settings) -> None:
+        self.r, self.keys, self.settings = r, keys, settings
+        self.model: ModelPublic | None = None
+
+    def register(self) -> bool:
+        """Register it unless done; whether it is registered."""
+        from service.store.blobs import BlobStoreUnavailable
+        from worker.jobs.context import job_blobs
+        from worker.jobs.models import register_demo_model
+
+        if self.model is not None:
+            return True
+        try:
+            blobs = job_blobs(self.settings)
+            self.model = register_demo_model(self.r, self.keys, self.settings.data_dir, blobs)
+        except BlobStoreUnavailable as exc:
+            log.error("%s: the demo model is not registered yet (retried)", exc)
+            return False
+        log.info("model '%s' registered", self.model.id)
+        return True
+
+
 class Maintenance:
     """A thread beside the worker: every sweep_s it recovers the jobs of dead workers and
     shortens the TTL of this worker's RQ registration to WORKER_TTL_S (RQ sets 2 min when idle,
     and the job timeout + 60 s while a job runs in-process), so that a killed worker leaves
-    /readyz within about a minute. EXPIRE is a no-op once the worker has unregistered."""
+    /readyz within about a minute. EXPIRE is a no-op once the worker has unregistered. It also
+    sweeps the blob store when no other worker did within blob_sweep_s, and registers the demo
+    model if the blob store was down when the worker started."""
 
-    def __init__(self, worker: Any, r: redis.Redis, settings: Settings) -> None:
+    def __init__(
+        self,
+        worker: Any,
+        r: redis.Redis,
+        settings: Settings,
+        blobs: BlobStore,
+        demo: DemoRegistration | None = None,
+    ) -> None:
         from service.store import JobStore, Keys, Reaper
+        from service.store.blobs.sweeper import BlobSweeper
 
-        store = JobStore(r, Keys(settings.redis_prefix), settings.retention_s)
+        keys = Keys(settings.redis_prefix)
+        store = JobStore(r, keys, settings.retention_s, blobs=blobs)
         self.reaper = Reaper(store, settings.job_max_attempts)
+        self.sweeper = BlobSweeper(r, keys, blobs)
+        self.blob_sweep_s = settings.blob_sweep_s
+        self.demo = demo
         self.worker, self.r = worker, r
         self.sweep_s = max(0.5, settings.job_lease_s / 6.0)
         self._stop = threading.Event()
@@ -138,13 +182,20 @@ class Maintenance:
     def _run(self) -> None:
         import redis
 
+        from service.store.blobs import BlobStoreError
+
         while not self._stop.wait(self.sweep_s):
             try:
                 self.reaper.sweep()
                 self.reaper.sweep_orphans()
                 self.r.expire(self.worker.key, WORKER_TTL_S)
+                if self.demo is not None:
+                    self.demo.register()
+                self.sweeper.sweep_if_due(self.blob_sweep_s)
             except redis.RedisError as exc:
                 log.warning("maintenance: Redis error: %s", exc)
+            except BlobStoreError as exc:
+                log.warning("maintenance: %s", exc)
             except Exception:  # never let the thread die: it guards the other workers' jobs
                 log.exception("maintenance: unexpected error")
 
