@@ -14,12 +14,15 @@ import redis.asyncio
 from fastapi import FastAPI
 
 from schemas.settings import Settings, get_settings
+from schemas.version import __version__
 from service.auth import AuthMiddleware, document_bearer_auth
 from service.errors import install_error_handlers
 from service.headers import ConfiguredCORSMiddleware, SecurityHeadersMiddleware
 from service.limits import BodySizeLimitMiddleware
 from service.logs import configure_logging
 from service.metrics import Metrics, MetricsMiddleware
+from service.openapi import install as install_openapi
+from service.openapi import operation_id
 from service.ratelimit import SubmissionRateLimitMiddleware
 from service.routes import docs, estimates, health, metrics, models, pages, renders, session
 from service.store import Keys
@@ -71,12 +74,13 @@ async def lifespan(app: FastAPI) -> AsyncIterator[None]:
 def create_app() -> FastAPI:
     app = FastAPI(
         title="proxpose",
-        version="0.1.0",
+        version=__version__,
         summary="Pose of a known target from one image, as a service",
         description=DESCRIPTION,
         lifespan=lifespan,
         docs_url=None,  # /docs is service.routes.docs: Swagger UI from local files
         redoc_url=None,
+        generate_unique_id_function=operation_id,
     )
     app.state.metrics = Metrics()
     app.state.metrics.watch_store(lambda: getattr(app.state, "store_source", None))
@@ -92,6 +96,7 @@ def create_app() -> FastAPI:
     app.add_middleware(MetricsMiddleware, metrics=app.state.metrics)  # outermost: counts 4xx
     install_error_handlers(app)
     document_bearer_auth(app)
+    install_openapi(app)  # after: its document, with the security schemes, is completed
     for module in (health, metrics, models, estimates, renders, session):
         app.include_router(module.router)
     app.include_router(pages.router)  # the browser pages

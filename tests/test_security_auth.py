@@ -205,7 +205,7 @@ def test_models_are_private_to_their_owners(client: TestClient, r: redis.Redis) 
     assert client.get("/v1/models", headers=bearer(BOB)).json()["items"] == []
     bob_request = request_json(model_id=model_id)
     refused = submit(client, BOB, request=bob_request)
-    assert refused.status_code == 422 and refused.json()["detail"][0]["type"] == "model_not_found"
+    assert refused.status_code == 422 and refused.json()["errors"][0]["type"] == "model_not_found"
     # the same bytes from bob: his own registration under his name, nothing revealed
     second = upload(BOB, "bob's cube")
     assert second.status_code == 201 and second.json()["id"] == model_id

@@ -164,7 +164,7 @@ def test_render_an_uploaded_model_fetched_from_redis(stack: Stack) -> None:
     body["pose"]["t"] = [50.0, 0.0, 4.0]
     invisible = stack.api.post("/v1/renders", json=body)
     assert invisible.status_code == 422
-    assert invisible.json()["detail"][0]["loc"] == ["body", "pose"]
+    assert invisible.json()["errors"][0]["loc"] == ["body", "pose"]
 
 
 def test_a_killed_worker_leaves_readyz_when_a_new_one_starts(stack: Stack) -> None:

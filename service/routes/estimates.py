@@ -11,14 +11,14 @@ from typing import Annotated, Any
 from fastapi import APIRouter, File, Form, Header, Query, Response, UploadFile
 from fastapi.responses import StreamingResponse
 from pydantic import ValidationError
-from starlette.exceptions import HTTPException
 
-from schemas.jobs import EstimateCreate, EstimateList, EstimatePublic
+from schemas.jobs import EstimateCreate, EstimateList, EstimatePublic, JobStatus
+from schemas.models import MODEL_ID_PATTERN
 from schemas.names import DEMO_MODEL_ID
 from schemas.settings import Settings
 from service.auth import PrincipalDep
 from service.deps import AsyncRedisDep, JobStoreDep, ModelStoreDep, SettingsDep
-from service.errors import echo, field_error, not_found, validation_failed
+from service.errors import ApiError, echo, field_error, not_found, validation_failed
 from service.events import job_events
 from service.resources import estimate_location, estimate_public, estimate_summary
 from service.store import ActiveJobsLimitError, JobRecord, JobStore, ModelStore, Reaper
@@ -114,8 +114,10 @@ def _replay(earlier: dict[str, str], fingerprint: str, jobs: JobStore) -> JobRec
         )
     record = jobs.get(earlier["job_id"])
     if record is None:
-        raise HTTPException(
-            409, detail="a request with this Idempotency-Key is still being processed; retry"
+        raise ApiError(
+            409,
+            detail="a request with this Idempotency-Key is still being processed; retry",
+            code="idempotency_in_progress",
         )
     return record
 
@@ -200,10 +202,11 @@ def create_estimate(
         if idempotency_key is not None:
             jobs.release_idempotency(owner, idempotency_key)
         if isinstance(exc, ActiveJobsLimitError):
-            raise HTTPException(
+            raise ApiError(
                 429,
                 detail=f"{exc}, the most allowed (max_active_jobs_per_key); wait for some to "
                 "finish or cancel some",
+                code="active_jobs_limit",
                 headers={"Retry-After": str(ACTIVE_CAP_RETRY_AFTER_S)},
             ) from exc
         raise
@@ -218,7 +221,11 @@ def create_estimate(
     return estimate_public(record)
 
 
-@router.get("", response_model=EstimateList, summary="List jobs, newest first (paged)")
+@router.get(
+    "",
+    response_model=EstimateList,
+    summary="List jobs, newest first (paged, filtered by status and model)",
+)
 def list_estimates(
     jobs: JobStoreDep,
     settings: SettingsDep,
@@ -227,12 +234,27 @@ def list_estimates(
         str | None,
         Query(pattern=r"^[0-9]{1,18}$", description="`next_cursor` of the previous page."),
     ] = None,
+    status: Annotated[
+        list[JobStatus] | None,
+        Query(description="Only jobs in these states (repeat for several)."),
+    ] = None,
+    model_id: Annotated[
+        str | None, Query(pattern=MODEL_ID_PATTERN, description="Only jobs of this model.")
+    ] = None,
 ) -> EstimateList:
-    records, next_seq = jobs.list_page(limit, int(cursor) if cursor is not None else None)
-    items = [
-        estimate_summary(Reaper(jobs, settings.job_max_attempts).reconcile(record))
-        for record in records
-    ]
+    reaper = Reaper(jobs, settings.job_max_attempts)
+    wanted = set(status) if status else None
+
+    def where(record: JobRecord) -> bool:
+        if model_id is not None and record.model_id != model_id:
+            return False
+        return wanted is None or reaper.reconcile(record).status in wanted
+
+    filtered = wanted is not None or model_id is not None
+    records, next_seq = jobs.list_page(
+        limit, int(cursor) if cursor is not None else None, where if filtered else None
+    )
+    items = [estimate_summary(reaper.reconcile(record)) for record in records]
     return EstimateList(items=items, next_cursor=str(next_seq) if next_seq is not None else None)
 
 
@@ -265,7 +287,9 @@ def cancel_estimate(
     after = None if record.terminal else jobs.request_cancel(job_id)
     if after is None or after.status in ("succeeded", "failed"):
         status = (after or record).status
-        raise HTTPException(409, detail=f"estimate '{job_id}' has already ended ({status})")
+        raise ApiError(
+            409, detail=f"estimate '{job_id}' has already ended ({status})", code="job_ended"
+        )
     if after.status != "cancelled":
         response.status_code = 202
     return estimate_public(after)
@@ -283,8 +307,10 @@ def get_artifact(job_id: str, name: str, jobs: JobStoreDep, settings: SettingsDe
     png = jobs.get_artifact(job_id, stem) if stem in record.artifacts else None
     if png is None:
         names = ", ".join(record.artifacts) or "none yet"
-        raise HTTPException(
-            404, detail=f"estimate '{job_id}' has no artifact '{echo(name)}' (artifacts: {names})"
+        raise ApiError(
+            404,
+            detail=f"estimate '{job_id}' has no artifact '{echo(name)}' (artifacts: {names})",
+            code="not_found",
         )
     headers = {"Cache-Control": "private, max-age=86400, immutable"}
     return Response(png, media_type="image/png", headers=headers)

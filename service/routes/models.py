@@ -9,7 +9,6 @@ from pathlib import PurePath
 from typing import Annotated
 
 from fastapi import APIRouter, File, Form, Response, UploadFile
-from starlette.exceptions import HTTPException
 
 from schemas.models import (
     MODEL_ID_HEX_DIGITS,
@@ -21,7 +20,7 @@ from schemas.models import (
 from schemas.names import DEMO_MODEL_ID
 from service.auth import PrincipalDep
 from service.deps import ModelStoreDep, SettingsDep
-from service.errors import field_error, not_found
+from service.errors import ApiError, field_error, not_found
 from service.uploads import UploadRejected, inspect_model, model_format
 
 router = APIRouter(prefix="/v1/models", tags=["models"])
@@ -33,7 +32,7 @@ def _get_or_404(models: ModelStoreDep, model_id: str) -> ModelPublic:
     model = models.get(model_id) if _ID.match(model_id) else None
     if model is None and model_id == DEMO_MODEL_ID:
         msg = f"model '{model_id}' is not registered yet: the first worker to start registers it"
-        raise HTTPException(404, detail=msg)
+        raise ApiError(404, detail=msg, code="not_found")
     if model is None:
         raise not_found("model", model_id)
     return model
@@ -91,10 +90,11 @@ def create_model(
         return existing
     quota = settings.max_models_per_key
     if quota and models.owned(principal.name) >= quota:
-        raise HTTPException(
+        raise ApiError(
             403,
             detail=f"API key '{principal.name}' has registered {quota} models, the most allowed "
             "(max_models_per_key); delete one first",
+            code="model_quota",
         )
     try:
         info = inspect_model(data, file_format, settings.max_model_faces)
@@ -143,6 +143,8 @@ def get_model(model_id: str, models: ModelStoreDep) -> ModelPublic:
 def delete_model(model_id: str, models: ModelStoreDep) -> Response:
     model = _get_or_404(models, model_id)
     if model.builtin:
-        raise HTTPException(409, detail=f"model '{model_id}' is built in and cannot be deleted")
+        raise ApiError(
+            409, detail=f"model '{model_id}' is built in and cannot be deleted", code="builtin"
+        )
     models.delete(model_id)
     return Response(status_code=204)
