@@ -48,6 +48,7 @@ class ApiError(HTTPException):
         super().__init__(status_code, detail=detail, headers=dict(headers) if headers else None)
         self.code = code
         self.errors = list(errors)
+        self.text = detail  # HTTPException fills detail with the reason phrase when None
 
 
 class ProblemResponse(JSONResponse):
@@ -107,7 +108,7 @@ async def _http_error(request: Request, exc: Exception) -> ProblemResponse:
     headers = getattr(exc, "headers", None)
     if isinstance(exc, ApiError):
         return problem_response(
-            request, exc.status_code, exc.detail, code=exc.code, errors=exc.errors, headers=headers
+            request, exc.status_code, exc.text, code=exc.code, errors=exc.errors, headers=headers
         )
     if exc.status_code == 400 and str(exc.detail).startswith(_PART_TOO_LARGE):
         msg = (

@@ -17,7 +17,7 @@ from schemas.models import MODEL_ID_PATTERN
 from schemas.names import DEMO_MODEL_ID
 from schemas.settings import Settings
 from service.auth import PrincipalDep
-from service.deps import AsyncRedisDep, JobStoreDep, ModelStoreDep, SettingsDep
+from service.deps import AsyncRedisDep, JobStoreDep, ModelStoreDep, Multipart, SettingsDep
 from service.errors import ApiError, echo, field_error, not_found, validation_failed
 from service.events import job_events
 from service.resources import estimate_location, estimate_public, estimate_summary
@@ -127,6 +127,7 @@ def _replay(earlier: dict[str, str], fingerprint: str, jobs: JobStore) -> JobRec
     status_code=202,
     response_model=EstimatePublic,
     summary="Submit a pose estimate",
+    dependencies=[Multipart],
     description="Multipart: `image` (PNG, JPEG or TIFF of exactly the camera's size) and "
     "`request` (JSON: the CLI's REQUEST.json plus `model_id`). Answers 202 with the job and "
     "`Location: /v1/estimates/{id}`. With an `Idempotency-Key` header, a retry of the same "
@@ -134,6 +135,7 @@ def _replay(earlier: dict[str, str], fingerprint: str, jobs: JobStore) -> JobRec
     responses={
         409: {"description": "The same Idempotency-Key is being processed right now."},
         413: {"description": "The image is larger than max_image_bytes."},
+        415: {"description": "The body is not multipart/form-data."},
         422: {"description": "A field is invalid; `detail[].loc` names it."},
         429: {
             "description": "The key submits too fast, or has max_active_jobs_per_key jobs "

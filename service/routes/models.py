@@ -19,7 +19,7 @@ from schemas.models import (
 )
 from schemas.names import DEMO_MODEL_ID
 from service.auth import PrincipalDep
-from service.deps import ModelStoreDep, SettingsDep
+from service.deps import ModelStoreDep, Multipart, SettingsDep
 from service.errors import ApiError, field_error, not_found
 from service.uploads import UploadRejected, inspect_model, model_format
 
@@ -43,6 +43,7 @@ def _get_or_404(models: ModelStoreDep, model_id: str) -> ModelPublic:
     status_code=201,
     response_model=ModelPublic,
     summary="Register a model file",
+    dependencies=[Multipart],
     description="Upload a mesh (OBJ, PLY, STL, GLB or GLTF with embedded buffers). The id is "
     "the file's content address: uploading the same bytes again answers 200 with the model "
     "already registered (under the name first given).",
@@ -50,6 +51,7 @@ def _get_or_404(models: ModelStoreDep, model_id: str) -> ModelPublic:
         200: {"model": ModelPublic, "description": "This key registered the same file before."},
         403: {"description": "The key has max_models_per_key models already."},
         413: {"description": "The file is larger than max_model_bytes."},
+        415: {"description": "The body is not multipart/form-data."},
         422: {"description": "Not a readable mesh, too many faces, or a bad name."},
         429: {"description": "The key submits too fast; see `Retry-After`."},
     },
