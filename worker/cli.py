@@ -2,10 +2,12 @@
 
     proxpose estimate --model MESH --image REF --request REQUEST.json --output DIR
     proxpose render   --model MESH --request REQUEST.json --pose POSE.json --output IMG.png
+    proxpose submit | status | wait | fetch | cancel | list | upload-model   (a running service)
 
 Other subcommands (serve, worker, bench, loadtest) are registered by their own modules; each
 is imported only when it runs, so ``estimate`` never loads the web stack and ``serve`` never
-loads Mitsuba in the API process.
+loads Mitsuba in the API process. The remote verbs (:mod:`service.client_cli`) need only the
+client, so they work where only ``pip install proxpose`` was done.
 """
 
 from __future__ import annotations
@@ -17,6 +19,8 @@ from collections.abc import Callable
 from pathlib import Path
 
 from pydantic import ValidationError
+
+from schemas.version import __version__
 
 #: Exit status for unusable input (bad file, bad JSON, failed validation).
 EXIT_BAD_INPUT = 2
@@ -31,6 +35,10 @@ _EXTRA_COMMANDS: list[tuple[str, str, str]] = [
     ("bench", "worker.bench.cli", "accuracy and speed against the baselines"),
     ("loadtest", "service.loadtest", "load-test a running service"),
 ]
+
+
+#: Packages of the engine extra: a command that needs one says so instead of a traceback.
+_ENGINE_PACKAGES = frozenset({"numpy", "mitsuba", "drjit", "cv2", "trimesh", "PIL", "tqdm"})
 
 
 class BadInput(Exception):
@@ -96,6 +104,9 @@ def cmd_estimate(args: argparse.Namespace) -> int:
     for name, png in artifacts.items():
         (args.output / f"{name}.png").write_bytes(png)
     (args.output / "result.json").write_text(result.model_dump_json(indent=2))
+    if args.json:
+        print(result.model_dump_json(indent=2, by_alias=True))
+        return 0
     err = result.errors
     extra = f", error {err.rotation_deg:.4f}° / {err.translation:.4g}" if err else ""
     print(
@@ -131,6 +142,7 @@ def cmd_render(args: argparse.Namespace) -> int:
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="proxpose", description=__doc__.split("\n\n")[0])
     parser.add_argument("-v", "--verbose", action="store_true", help="log progress details")
+    parser.add_argument("--version", action="version", version=f"proxpose {__version__}")
     sub = parser.add_subparsers(dest="command", required=True)
 
     p = sub.add_parser("estimate", help="estimate a pose from one image")
@@ -139,6 +151,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--request", type=Path, required=True, help="REQUEST.json")
     p.add_argument("--output", type=Path, required=True, help="directory for result + PNGs")
     p.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
+    p.add_argument("--json", action="store_true", help="print result.json on stdout")
     p.set_defaults(handler=cmd_estimate)
 
     p = sub.add_parser("render", help="render the model at a pose")
@@ -151,6 +164,9 @@ def build_parser() -> argparse.ArgumentParser:
 
     import importlib.util
 
+    from service.client_cli import add_commands
+
+    add_commands(sub)
     for name, module, help_text in _EXTRA_COMMANDS:
         if importlib.util.find_spec(module) is None:
             continue
@@ -163,7 +179,23 @@ def build_parser() -> argparse.ArgumentParser:
 def _add_arguments(module: str, parser: argparse.ArgumentParser) -> None:
     import importlib
 
-    importlib.import_module(module).add_arguments(parser)
+    try:
+        importlib.import_module(module).add_arguments(parser)
+    except ImportError as exc:  # an extra that is not installed (pip install 'proxpose[all]')
+        parser.add_argument("rest", nargs=argparse.REMAINDER, help=argparse.SUPPRESS)
+        parser.set_defaults(handler=_missing(exc.name or str(exc)))
+
+
+def _missing(package: str) -> Handler:
+    def run(args: argparse.Namespace) -> int:
+        print(
+            f"error: '{args.command}' needs {package}, which is not installed: "
+            "pip install 'proxpose[all]'",
+            file=sys.stderr,
+        )
+        return EXIT_BAD_INPUT
+
+    return run
 
 
 def _lazy(module: str) -> Handler:
@@ -185,6 +217,15 @@ def main(argv: list[str] | None = None) -> int:
 
     try:
         return int(args.handler(args))
+    except ModuleNotFoundError as exc:
+        if exc.name in _ENGINE_PACKAGES:
+            print(
+                f"error: '{args.command}' needs the engine ({exc.name} is not installed): "
+                "pip install 'proxpose[engine]'",
+                file=sys.stderr,
+            )
+            return EXIT_BAD_INPUT
+        raise
     except BadInput as exc:
         print(f"error: {exc}", file=sys.stderr)
         return EXIT_BAD_INPUT

@@ -335,11 +335,25 @@ _EVENTS_DOC: dict[int | str, dict[str, Any]] = {
     responses=_EVENTS_DOC,
 )
 def stream_events(
-    job_id: str, jobs: JobStoreDep, aredis: AsyncRedisDep, settings: SettingsDep
+    job_id: str,
+    jobs: JobStoreDep,
+    aredis: AsyncRedisDep,
+    settings: SettingsDep,
+    last_event_id: Annotated[
+        str | None,
+        Header(
+            alias="Last-Event-ID",
+            description="Id of the last event received (an iteration number): a reconnecting "
+            "stream resumes after it.",
+        ),
+    ] = None,
 ) -> StreamingResponse:
     _get_or_404(jobs, job_id, settings)
+    after = int(last_event_id) if last_event_id and last_event_id.isdigit() else 0
     return StreamingResponse(
-        job_events(jobs, aredis, job_id, settings.sse_keepalive_s, settings.job_max_attempts),
+        job_events(
+            jobs, aredis, job_id, settings.sse_keepalive_s, settings.job_max_attempts, after
+        ),
         media_type="text/event-stream",
         headers={"Cache-Control": "no-cache", "X-Accel-Buffering": "no"},
     )
