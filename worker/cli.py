@@ -37,8 +37,11 @@ _EXTRA_COMMANDS: list[tuple[str, str, str]] = [
 ]
 
 
-#: Packages of the engine extra: a command that needs one says so instead of a traceback.
-_ENGINE_PACKAGES = frozenset({"numpy", "mitsuba", "drjit", "cv2", "trimesh", "PIL", "tqdm"})
+#: Packages of the extras: a command that needs a missing one says so instead of a traceback.
+_EXTRA_PACKAGES = frozenset(
+    {"numpy", "mitsuba", "drjit", "cv2", "trimesh", "PIL", "tqdm", "matplotlib"}
+    | {"pydantic_settings", "redis", "rq", "fastapi", "starlette", "uvicorn", "prometheus_client"}
+)
 
 
 class BadInput(Exception):
@@ -218,10 +221,10 @@ def main(argv: list[str] | None = None) -> int:
     try:
         return int(args.handler(args))
     except ModuleNotFoundError as exc:
-        if exc.name in _ENGINE_PACKAGES:
+        if exc.name in _EXTRA_PACKAGES:
             print(
-                f"error: '{args.command}' needs the engine ({exc.name} is not installed): "
-                "pip install 'proxpose[engine]'",
+                f"error: '{args.command}' needs {exc.name}, which is not installed: "
+                "pip install 'proxpose[all]' (the engine and the service)",
                 file=sys.stderr,
             )
             return EXIT_BAD_INPUT
