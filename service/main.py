@@ -19,7 +19,7 @@ from service.auth import AuthMiddleware, document_bearer_auth
 from service.errors import install_error_handlers
 from service.headers import ConfiguredCORSMiddleware, SecurityHeadersMiddleware
 from service.limits import BodySizeLimitMiddleware
-from service.logs import configure_logging
+from service.logs import adopt_uvicorn_loggers, configure_logging
 from service.metrics import Metrics, MetricsMiddleware
 from service.openapi import install as install_openapi
 from service.openapi import operation_id
@@ -51,6 +51,7 @@ def request_body_limit(settings: Settings) -> int:
 async def lifespan(app: FastAPI) -> AsyncIterator[None]:
     settings = get_settings()
     configure_logging(settings.log_format, quiet=("rq",))
+    adopt_uvicorn_loggers()
     url = settings.effective_redis_url()
     # a hung Redis must not hang requests; the longest blocking call is the render wait
     app.state.redis = redis.Redis.from_url(

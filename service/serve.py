@@ -132,13 +132,7 @@ class Supervisor:
         self.workers = [Child(f"worker-{i + 1}", worker_argv) for i in range(s.workers)]
         for worker in self.workers:
             self._spawn(worker)
-        self.api = Child(
-            "api",
-            [
-                *(sys.executable, "-m", "uvicorn", "service.main:app"),
-                *("--host", s.host, "--port", str(s.port), "--timeout-graceful-shutdown", "5"),
-            ],
-        )
+        self.api = Child("api", self._api_argv())
         self._spawn(self.api)
         if not self._wait_api():
             return _fail("the API did not start (see its log above)")
@@ -149,6 +143,22 @@ class Supervisor:
             flush=True,
         )
         return 0
+
+    def _api_argv(self) -> list[str]:
+        """uvicorn with its log lines in our format from the first one (``--log-config``)."""
+        import json
+
+        from service.logs import uvicorn_log_config
+
+        s = self.settings
+        log_config = self.data_dir / "uvicorn-logging.json"
+        self.data_dir.mkdir(parents=True, exist_ok=True)
+        log_config.write_text(json.dumps(uvicorn_log_config(s.log_format)))
+        return [
+            *(sys.executable, "-m", "uvicorn", "service.main:app"),
+            *("--host", s.host, "--port", str(s.port), "--timeout-graceful-shutdown", "5"),
+            *("--log-config", str(log_config)),
+        ]
 
     def _watch(self) -> int:
         while self.signals == 0:

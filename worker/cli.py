@@ -44,6 +44,10 @@ _EXTRA_PACKAGES = frozenset(
 )
 
 
+#: Module of the verbs that call a running service (submit, status, wait, fetch, ...).
+_REMOTE_VERBS = "service.client_cli"
+
+
 class BadInput(Exception):
     """A user error, reported in one line."""
 
@@ -165,11 +169,11 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--spp", type=int, default=64, help="samples per pixel (default 64)")
     p.set_defaults(handler=cmd_render)
 
+    import importlib
     import importlib.util
 
-    from service.client_cli import add_commands
-
-    add_commands(sub)
+    # the remote verbs live with the client (loaded by name, like the commands below)
+    importlib.import_module(_REMOTE_VERBS).add_commands(sub)
     for name, module, help_text in _EXTRA_COMMANDS:
         if importlib.util.find_spec(module) is None:
             continue

@@ -27,7 +27,6 @@ import json
 import time
 import uuid
 from collections.abc import Iterator, Mapping
-from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -41,12 +40,47 @@ from schemas.jobs import (
     EstimatePublic,
     EstimateSummary,
     JobStatus,
-    Progress,
     RenderCreate,
 )
 from schemas.models import ModelList, ModelPublic
-from schemas.problem import Problem
 from schemas.version import __version__
+from service.client.errors import (
+    ApiError,
+    BadRequest,
+    Conflict,
+    Forbidden,
+    NotFound,
+    PayloadTooLarge,
+    ProxposeClientError,
+    RateLimited,
+    ServerError,
+    ServiceUnavailable,
+    ServiceUnreachable,
+    Unauthorized,
+    UnsupportedMediaType,
+    WaitTimeout,
+    error_from,
+)
+from service.client.events import JobEvent, parse_event, read_sse
+
+__all__ = [
+    "ApiError",
+    "BadRequest",
+    "Client",
+    "Conflict",
+    "Forbidden",
+    "JobEvent",
+    "NotFound",
+    "PayloadTooLarge",
+    "ProxposeClientError",
+    "RateLimited",
+    "ServerError",
+    "ServiceUnavailable",
+    "ServiceUnreachable",
+    "Unauthorized",
+    "UnsupportedMediaType",
+    "WaitTimeout",
+]
 
 #: Default timeout of one HTTP request, s.
 DEFAULT_TIMEOUT_S = 30.0
@@ -64,161 +98,6 @@ EVENTS_READ_TIMEOUT_S = 60.0
 EVENTS_RECONNECTS = 5
 _IMAGE_TYPES = {".png": "image/png", ".jpg": "image/jpeg", ".jpeg": "image/jpeg"}
 _IMAGE_TYPES |= {".tif": "image/tiff", ".tiff": "image/tiff"}
-
-
-# ----------------------------------------------------------------------------- errors
-class ProxposeClientError(Exception):
-    """Base of the client's errors."""
-
-
-class ServiceUnreachable(ProxposeClientError):
-    """No answer from the service (connection refused, dropped, timed out) after the retries."""
-
-
-class ApiError(ProxposeClientError):
-    """The service answered an error; ``problem`` holds its problem details."""
-
-    def __init__(self, status: int, problem: Problem, headers: Mapping[str, str]) -> None:
-        self.status = status
-        self.problem = problem
-        self.code = problem.code
-        self.errors = problem.errors
-        self.retry_after_s = _retry_after(headers)
-        super().__init__(f"{status} {problem.code}: {problem.detail}")
-
-
-class BadRequest(ApiError):
-    """400 or 422: a field is invalid (``errors`` names each)."""
-
-
-class Unauthorized(ApiError):
-    """401: no valid API key."""
-
-
-class Forbidden(ApiError):
-    """403: the key may not do that (a quota, a cross-site request)."""
-
-
-class NotFound(ApiError):
-    """404: no such job, model or artifact (or another key's)."""
-
-
-class Conflict(ApiError):
-    """409: the job has already ended, a model is built in, an idempotent retry is in flight."""
-
-
-class PayloadTooLarge(ApiError):
-    """413: an upload or the request JSON is over its limit."""
-
-
-class UnsupportedMediaType(ApiError):
-    """415: the body is not of the type the route reads."""
-
-
-class RateLimited(ApiError):
-    """429: too many submissions, or too many active jobs; see ``retry_after_s``."""
-
-
-class ServiceUnavailable(ApiError):
-    """503: the service cannot serve now (its Redis is away, no worker for a render)."""
-
-
-class ServerError(ApiError):
-    """500 or another 5xx."""
-
-
-_BY_STATUS: dict[int, type[ApiError]] = {
-    400: BadRequest,
-    401: Unauthorized,
-    403: Forbidden,
-    404: NotFound,
-    409: Conflict,
-    413: PayloadTooLarge,
-    415: UnsupportedMediaType,
-    422: BadRequest,
-    429: RateLimited,
-    503: ServiceUnavailable,
-}
-
-
-class WaitTimeout(ProxposeClientError):
-    """``wait`` gave up before the job ended; ``job`` is its last state."""
-
-    def __init__(self, job: EstimatePublic, timeout_s: float) -> None:
-        self.job = job
-        super().__init__(f"estimate {job.id} is still {job.status} after {timeout_s:g} s")
-
-
-def _retry_after(headers: Mapping[str, str]) -> float | None:
-    value = headers.get("retry-after")
-    try:
-        return max(0.0, float(value)) if value is not None else None
-    except ValueError:
-        return None  # an HTTP date: not sent by this service
-
-
-def error_from(response: httpx.Response) -> ApiError:
-    """The typed error of an error answer (a non-problem body is wrapped in one)."""
-    try:
-        problem = Problem.model_validate(response.json())
-    except (ValueError, json.JSONDecodeError):
-        problem = Problem(
-            type="about:blank",
-            title=response.reason_phrase or "Error",
-            status=response.status_code,
-            detail=response.text[:500] or response.reason_phrase or "error",
-            code="http_" + str(response.status_code),
-        )
-    cls = _BY_STATUS.get(
-        response.status_code, ServerError if response.status_code >= 500 else ApiError
-    )
-    return cls(response.status_code, problem, response.headers)
-
-
-# ----------------------------------------------------------------------------- events
-@dataclass(frozen=True)
-class JobEvent:
-    """One event of a job's stream: ``status`` (``status`` set), ``progress`` (``progress``
-    set, after every iteration) or ``end`` (``job`` set: the final resource)."""
-
-    kind: str
-    status: JobStatus | None = None
-    progress: Progress | None = None
-    job: EstimatePublic | None = None
-    id: str | None = None
-
-
-def _parse_event(kind: str, data: str, event_id: str | None) -> JobEvent:
-    if kind == "progress":
-        return JobEvent(kind, progress=Progress.model_validate_json(data), id=event_id)
-    if kind == "end":
-        job = EstimatePublic.model_validate_json(data)
-        return JobEvent(kind, status=job.status, job=job, id=event_id)
-    payload = json.loads(data)
-    return JobEvent(kind, status=payload.get("status"), id=event_id)
-
-
-def _sse(lines: Iterator[str]) -> Iterator[tuple[str, str, str | None]]:
-    """(event, data, id) of a text/event-stream (comments and keep-alives skipped)."""
-    kind, event_id = "message", None
-    data: list[str] = []
-    for line in lines:
-        if line == "":
-            if data:
-                yield kind, "\n".join(data), event_id
-            kind, event_id = "message", None
-            data = []
-            continue
-        if line.startswith(":"):
-            continue
-        name, _, value = line.partition(":")
-        value = value[1:] if value.startswith(" ") else value
-        if name == "event":
-            kind = value
-        elif name == "data":
-            data.append(value)
-        elif name == "id":
-            event_id = value
 
 
 # ----------------------------------------------------------------------------- the client
@@ -397,9 +276,9 @@ class Client:
                     if not response.is_success:
                         response.read()
                         raise error_from(response)
-                    for kind, data, event_id in _sse(response.iter_lines()):
+                    for kind, data, event_id in read_sse(response.iter_lines()):
                         failures = 0
-                        event = _parse_event(kind, data, event_id)
+                        event = parse_event(kind, data, event_id)
                         if event_id is not None:
                             last_id = event_id
                         yield event
