@@ -225,3 +225,21 @@ def test_a_dropped_event_stream_resumes_after_the_last_event() -> None:
     assert events[-1].job is not None and events[-1].job.status == "succeeded"
     assert "Last-Event-ID" not in seen[0].headers
     assert seen[1].headers["Last-Event-ID"] == "1" and seen[2].headers["Last-Event-ID"] == "1"
+
+
+def test_rq_info_sees_our_queues(api: Client, redis_server: RedisServer) -> None:
+    """What the README says operators run: `rq info` with the JSON serializer."""
+    api.submit_estimate(png(), base_request())
+    rq = Path(sys.executable).parent / "rq"
+    shown = subprocess.run(
+        [str(rq), "info", "-u", redis_server.url(DB), "-S", "json", "--raw", "--only-queues"],
+        capture_output=True,
+        text=True,
+        timeout=60,
+    )
+    assert shown.returncode == 0, shown.stderr
+    lines = {
+        line.split()[1]: line for line in shown.stdout.splitlines() if line.startswith("queue ")
+    }
+    assert "proxpose-estimates" in lines, shown.stdout
+    assert int(lines["proxpose-estimates"].split()[2].rstrip(",")) >= 1
