@@ -8,10 +8,14 @@ from __future__ import annotations
 
 from collections.abc import AsyncIterator
 from contextlib import asynccontextmanager
+from typing import Any
 
 import redis
 import redis.asyncio
 from fastapi import FastAPI
+from redis.asyncio.retry import Retry as AsyncRetry
+from redis.backoff import ExponentialBackoff
+from redis.retry import Retry
 
 from schemas.settings import Settings, get_settings
 from schemas.version import __version__
@@ -29,6 +33,11 @@ from service.store import Keys
 
 #: Seconds to wait for a connection to Redis.
 REDIS_CONNECT_TIMEOUT_S = 5.0
+#: A pooled Redis connection idle this long is checked (PING) before it is used, s.
+REDIS_HEALTH_CHECK_S = 2
+#: Retries of a Redis command on a dropped connection, and the longest pause between two, s.
+REDIS_RETRIES = 3
+REDIS_RETRY_CAP_S = 0.5
 #: Allowance for the multipart framing and the request JSON beside the largest file, bytes.
 BODY_OVERHEAD_BYTES = 1024 * 1024
 
@@ -54,14 +63,22 @@ async def lifespan(app: FastAPI) -> AsyncIterator[None]:
     adopt_uvicorn_loggers()
     url = settings.effective_redis_url()
     # a hung Redis must not hang requests; the longest blocking call is the render wait
+    # After a Redis restart the pooled connections are dead: a connection idle for
+    # REDIS_HEALTH_CHECK_S is pinged (and remade) before use, and a command that meets a dropped
+    # connection is retried, so the first requests after an outage succeed instead of a 503.
+    reconnect: dict[str, Any] = {
+        "socket_connect_timeout": REDIS_CONNECT_TIMEOUT_S,
+        "health_check_interval": REDIS_HEALTH_CHECK_S,
+        "retry_on_error": [redis.ConnectionError, redis.TimeoutError],
+    }
     app.state.redis = redis.Redis.from_url(
         url,
-        socket_connect_timeout=REDIS_CONNECT_TIMEOUT_S,
         socket_timeout=settings.render_timeout_s + REDIS_CONNECT_TIMEOUT_S,
-        health_check_interval=30,
+        retry=Retry(ExponentialBackoff(cap=REDIS_RETRY_CAP_S), REDIS_RETRIES),
+        **reconnect,
     )
     app.state.aredis = redis.asyncio.Redis.from_url(
-        url, socket_connect_timeout=REDIS_CONNECT_TIMEOUT_S, health_check_interval=30
+        url, retry=AsyncRetry(ExponentialBackoff(cap=REDIS_RETRY_CAP_S), REDIS_RETRIES), **reconnect
     )
     app.state.store_source = (app.state.redis, Keys(settings.redis_prefix))
     try:
