@@ -1,19 +1,32 @@
 # proxpose: `make run` starts the service, `make test` runs the test suite.
-# Both create .venv on first use (python3 -m venv + pinned deps from pyproject.toml).
+# Both create .venv on first use (python3 -m venv + the exact versions of requirements.lock).
 PYTHON ?= python3
 VENV := .venv
 BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
 
-.PHONY: venv test run lint system-deps clean
+.PHONY: venv test run lint lock system-deps clean
 
 venv: $(STAMP)
 
-$(STAMP): pyproject.toml
+$(STAMP): pyproject.toml requirements.lock
 	$(PYTHON) -m venv $(VENV)
 	$(BIN)/pip install --quiet --upgrade pip
-	$(BIN)/pip install --quiet -e '.[dev]'
+	$(BIN)/pip install --quiet -r requirements.lock
+	$(BIN)/pip install --quiet --no-deps -e .
 	touch $(STAMP)
+
+# Re-resolve the ranges of pyproject.toml (every extra) in a scratch venv and pin what pip chose:
+# run after changing a dependency, then `make test` and commit both files.
+lock:
+	rm -rf .lock-venv
+	$(PYTHON) -m venv .lock-venv
+	.lock-venv/bin/pip install --quiet --upgrade pip
+	.lock-venv/bin/pip install --quiet '.[dev]'
+	( echo "# Exact versions of every dependency (all extras), from 'make lock'; install with"; \
+	  echo "#   pip install -r requirements.lock && pip install --no-deps -e ."; \
+	  .lock-venv/bin/pip freeze --exclude-editable | grep -v '^proxpose' ) > requirements.lock
+	rm -rf .lock-venv
 
 # Optional system packages: LLVM >= 16 lets Mitsuba use its fast llvm variant (otherwise it
 # falls back to scalar_rgb), Chromium drives the browser tests. Installed only when we are

@@ -239,9 +239,11 @@ class Settings(BaseSettings):
         description="Times an estimate is started at most; after that many lost workers it "
         "fails with 'worker_lost'.",
     )
-    log_format: Literal["json", "text"] = Field(
-        default="json",
-        description="Log lines of the API and workers: JSON objects (with job ids) or text.",
+    log_format: Literal["auto", "json", "text"] = Field(
+        default="auto",
+        description="Log lines of the API and workers (uvicorn's own lines included): JSON "
+        "objects (with job ids) or text; auto: text when stderr is a terminal (make run in a "
+        "shell), JSON otherwise (a service manager, a container, a pipe).",
     )
 
     sse_keepalive_s: float = Field(

@@ -13,7 +13,6 @@ from __future__ import annotations
 
 import hashlib
 import hmac
-import json
 from collections.abc import Callable
 from http.cookies import SimpleCookie
 from typing import Annotated, Any
@@ -23,6 +22,7 @@ from fastapi import Depends, FastAPI, HTTPException, Request
 from starlette.types import ASGIApp, Receive, Scope, Send
 
 from schemas.settings import Settings
+from service.problems import send_problem
 from service.store import ANONYMOUS, Principal
 
 #: Paths that never need a key: probes, metrics, the API description, the key form.
@@ -133,28 +133,36 @@ class AuthMiddleware:
         if principal is None:
             if _wants_html(scope, headers):
                 target = quote(scope["path"], safe="/")
-                await _answer(send, 303, None, [(b"location", f"/session?next={target}".encode())])
+                await _redirect(send, f"/session?next={target}")
                 return
             why = "invalid API key" if token else "this API needs a key"
             detail = f"{why}: send the header 'Authorization: Bearer <key>'"
-            await _answer(send, 401, detail, [(b"www-authenticate", CHALLENGE.encode())])
+            await send_problem(
+                send,
+                401,
+                detail,
+                code="unauthorized",
+                instance=scope["path"],
+                headers=[(b"www-authenticate", CHALLENGE.encode())],
+            )
             return
         if via_cookie and scope["method"] not in SAFE_METHODS and not same_origin(scope, headers):
-            await _answer(send, 403, "cross-site request refused (cookie credentials)", [])
+            await send_problem(
+                send,
+                403,
+                "cross-site request refused (cookie credentials)",
+                code="cross_site",
+                instance=scope["path"],
+            )
             return
         state["principal"] = principal
         await self.app(scope, receive, send)
 
 
-async def _answer(
-    send: Send, status: int, detail: str | None, extra: list[tuple[bytes, bytes]]
-) -> None:
-    body = json.dumps({"detail": detail}).encode() if detail is not None else b""
-    headers = [(b"content-length", b"%d" % len(body)), *extra]
-    if detail is not None:
-        headers.append((b"content-type", b"application/json"))
-    await send({"type": "http.response.start", "status": status, "headers": headers})
-    await send({"type": "http.response.body", "body": body})
+async def _redirect(send: Send, location: str) -> None:
+    headers = [(b"content-length", b"0"), (b"location", location.encode())]
+    await send({"type": "http.response.start", "status": 303, "headers": headers})
+    await send({"type": "http.response.body", "body": b""})
 
 
 async def get_principal(request: Request) -> Principal:

@@ -19,6 +19,7 @@ from fastapi import Depends, Request
 
 from schemas.settings import Settings, get_settings
 from service.auth import PrincipalDep
+from service.errors import ApiError
 from service.store import JobStore, Keys, ModelStore, Queues
 from service.store.blobs import BlobStore
 
@@ -79,3 +80,18 @@ async def get_queues(r: RedisDep, keys: KeysDep) -> Queues:
 JobStoreDep = Annotated[JobStore, Depends(get_job_store)]
 ModelStoreDep = Annotated[ModelStore, Depends(get_model_store)]
 QueuesDep = Annotated[Queues, Depends(get_queues)]
+
+
+async def require_multipart(request: Request) -> None:
+    """415 unless the body is multipart/form-data (the upload routes read nothing else)."""
+    content_type = request.headers.get("content-type", "")
+    if not content_type.lower().startswith("multipart/form-data"):
+        got = content_type.split(";")[0].strip() or "none"
+        raise ApiError(
+            415,
+            f"the body must be multipart/form-data (got {got}); see the curl examples",
+            code="unsupported_media_type",
+        )
+
+
+Multipart = Depends(require_multipart)

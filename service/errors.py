@@ -1,44 +1,75 @@
-"""Error answers: every 4xx names the field and the problem; nothing leaks a traceback.
+"""Error answers: every error is RFC 9457 problem details (:mod:`schemas.problem`), built by
+:func:`service.problems.problem`; every 4xx names the field and the problem; nothing leaks a
+traceback.
 
-Field errors use FastAPI's shape, ``{"detail": [{"loc": [...], "msg": "...", "type": "..."}]}``,
-whether pydantic or an explicit check found them; other errors are ``{"detail": "..."}``.
+Routes raise :class:`ApiError` (an HTTPException with a stable ``code`` and field errors), or
+the helpers below; FastAPI's own errors (validation, 404 of an unknown path, 405) and those of
+Starlette's form parser go through the same handlers.
 """
 
 from __future__ import annotations
 
 import logging
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
+from typing import Any
 
 import redis
 from fastapi import FastAPI, HTTPException, Request
-from fastapi.exception_handlers import http_exception_handler
 from fastapi.exceptions import RequestValidationError
-from fastapi.responses import JSONResponse, Response
+from fastapi.responses import JSONResponse
 from pydantic import ValidationError
 from starlette.exceptions import HTTPException as StarletteHTTPException
 
+from schemas.problem import PROBLEM_MEDIA_TYPE
+from service.problems import problem
 from service.store.blobs import BlobStoreUnavailable
 
 log = logging.getLogger(__name__)
 
 #: Longest id echoed back in an error message, characters.
 ECHO_MAX_CHARS = 80
+#: Retry-After of a 503 while Redis is unreachable, s.
+REDIS_DOWN_RETRY_AFTER_S = 5
 #: Starlette's message for a multipart form field over its 1 MiB cap (answered 400 otherwise).
 _PART_TOO_LARGE = "Part exceeded maximum size"
 
 
-def field_error(status_code: int, loc: Sequence[str | int], msg: str, type_: str) -> HTTPException:
+class ApiError(HTTPException):
+    """An error answer: status, ``detail`` in words, a stable ``code``, the field errors."""
+
+    def __init__(
+        self,
+        status_code: int,
+        detail: str | None = None,
+        *,
+        code: str | None = None,
+        errors: Sequence[dict[str, Any]] = (),
+        headers: Mapping[str, str] | None = None,
+    ) -> None:
+        super().__init__(status_code, detail=detail, headers=dict(headers) if headers else None)
+        self.code = code
+        self.errors = list(errors)
+        self.text = detail  # HTTPException fills detail with the reason phrase when None
+
+
+class ProblemResponse(JSONResponse):
+    media_type = PROBLEM_MEDIA_TYPE
+
+
+def field_error(status_code: int, loc: Sequence[str | int], msg: str, type_: str) -> ApiError:
     """An HTTP error about one field: ``loc`` as FastAPI spells it, e.g. ("body", "image")."""
-    return HTTPException(status_code, detail=[{"loc": list(loc), "msg": msg, "type": type_}])
+    return ApiError(status_code, code=type_, errors=[{"loc": list(loc), "msg": msg, "type": type_}])
 
 
-def validation_failed(exc: ValidationError, prefix: Sequence[str | int]) -> HTTPException:
+def validation_failed(exc: ValidationError, prefix: Sequence[str | int]) -> ApiError:
     """A 422 listing pydantic's errors, located under ``prefix`` (e.g. ("body", "request"))."""
-    return HTTPException(422, detail=_errors(exc.errors(include_url=False), prefix))
+    return ApiError(
+        422, code="validation_error", errors=_errors(exc.errors(include_url=False), prefix)
+    )
 
 
-def not_found(what: str, ident: str) -> HTTPException:
-    return HTTPException(404, detail=f"{what} '{echo(ident)}' not found")
+def not_found(what: str, ident: str) -> ApiError:
+    return ApiError(404, f"{what} '{echo(ident)}' not found", code="not_found")
 
 
 def echo(text: str) -> str:
@@ -46,7 +77,7 @@ def echo(text: str) -> str:
     return text if len(text) <= ECHO_MAX_CHARS else text[:ECHO_MAX_CHARS] + "…"
 
 
-def _errors(errors: Sequence[object], prefix: Sequence[str | int] = ()) -> list[dict[str, object]]:
+def _errors(errors: Sequence[object], prefix: Sequence[str | int] = ()) -> list[dict[str, Any]]:
     out = []
     for e in errors:
         assert isinstance(e, dict)
@@ -54,29 +85,53 @@ def _errors(errors: Sequence[object], prefix: Sequence[str | int] = ()) -> list[
     return out
 
 
-async def _request_validation(request: Request, exc: Exception) -> JSONResponse:
+def problem_response(
+    request: Request,
+    status: int,
+    detail: str | None = None,
+    *,
+    code: str | None = None,
+    errors: Sequence[dict[str, Any]] = (),
+    headers: Mapping[str, str] | None = None,
+) -> ProblemResponse:
+    body = problem(status, detail, code=code, errors=errors, instance=request.url.path)
+    return ProblemResponse(body, status_code=status, headers=dict(headers) if headers else None)
+
+
+async def _request_validation(request: Request, exc: Exception) -> ProblemResponse:
     assert isinstance(exc, RequestValidationError)
     # FastAPI's default echoes each "input"; an upload or a long body has no place in an error.
-    return JSONResponse({"detail": _errors(exc.errors())}, status_code=422)
+    return problem_response(request, 422, code="validation_error", errors=_errors(exc.errors()))
 
 
-async def _http_error(request: Request, exc: Exception) -> Response:
+async def _http_error(request: Request, exc: Exception) -> ProblemResponse:
     assert isinstance(exc, StarletteHTTPException)
+    headers = getattr(exc, "headers", None)
+    if isinstance(exc, ApiError):
+        return problem_response(
+            request, exc.status_code, exc.text, code=exc.code, errors=exc.errors, headers=headers
+        )
     if exc.status_code == 400 and str(exc.detail).startswith(_PART_TOO_LARGE):
         msg = (
             "a form field is larger than 1 MiB; send the request JSON as a file part "
             "(curl -F request=@request.json)"
         )
-        return JSONResponse(
-            {"detail": [{"loc": ["body"], "msg": msg, "type": "too_large"}]}, status_code=413
-        )
-    return await http_exception_handler(request, exc)
+        errors = [{"loc": ["body"], "msg": msg, "type": "too_large"}]
+        return problem_response(request, 413, msg, code="too_large", errors=errors)
+    if isinstance(exc.detail, list):  # FastAPI's field-error shape
+        return problem_response(request, exc.status_code, errors=exc.detail, headers=headers)
+    detail = exc.detail if isinstance(exc.detail, str) else None
+    return problem_response(request, exc.status_code, detail, headers=headers)
 
 
-async def _redis_down(request: Request, exc: Exception) -> JSONResponse:
+async def _redis_down(request: Request, exc: Exception) -> ProblemResponse:
     log.error("Redis error on %s %s: %s", request.method, request.url.path, exc)
-    return JSONResponse(
-        {"detail": "the job store (Redis) is unreachable; try again shortly"}, status_code=503
+    return problem_response(
+        request,
+        503,
+        "the job store (Redis) is unreachable; try again shortly",
+        code="unavailable",
+        headers={"Retry-After": str(REDIS_DOWN_RETRY_AFTER_S)},
     )
 
 
@@ -84,19 +139,21 @@ async def _redis_down(request: Request, exc: Exception) -> JSONResponse:
 BLOB_STORE_RETRY_AFTER_S = 5
 
 
-async def _blob_store_down(request: Request, exc: Exception) -> JSONResponse:
+async def _blob_store_down(request: Request, exc: Exception) -> ProblemResponse:
     assert isinstance(exc, BlobStoreUnavailable)
     log.error("blob store error on %s %s: %s", request.method, request.url.path, exc)
-    return JSONResponse(
-        {"detail": f"the blob store ({exc.store}) is unavailable; try again shortly"},
-        status_code=503,
+    return problem_response(
+        request,
+        503,
+        f"the blob store ({exc.store}) is unavailable; try again shortly",
+        code="store_unavailable",
         headers={"Retry-After": str(BLOB_STORE_RETRY_AFTER_S)},
     )
 
 
-async def _internal(request: Request, exc: Exception) -> JSONResponse:
+async def _internal(request: Request, exc: Exception) -> ProblemResponse:
     log.exception("unhandled error on %s %s", request.method, request.url.path, exc_info=exc)
-    return JSONResponse({"detail": "internal server error"}, status_code=500)
+    return problem_response(request, 500, "internal server error", code="internal_error")
 
 
 def install_error_handlers(app: FastAPI) -> None:

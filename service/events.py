@@ -3,8 +3,10 @@
 Events: ``status`` ({"status", ...}) on every change of state, ``progress`` (the job's progress
 object) after every iteration, and ``end`` (the full job resource) once the job is terminal,
 after which the stream closes. Subscribing before reading the record means no event is lost in
-between; duplicates are dropped by iteration number. Idle streams get a keep-alive comment, and
-the record is re-read then, so a lost message or a dead worker cannot leave a stream hanging.
+between; duplicates are dropped by iteration number (the event id), and a client that
+reconnects with ``Last-Event-ID`` gets only the iterations after it. Idle streams get a
+keep-alive comment, and the record is re-read then, so a lost message or a dead worker cannot
+leave a stream hanging.
 """
 
 from __future__ import annotations
@@ -34,8 +36,11 @@ async def job_events(
     job_id: str,
     keepalive_s: float,
     max_attempts: int,
+    after_iteration: int = 0,
 ) -> AsyncIterator[str]:
-    """The event stream of job ``job_id`` (which must exist), until it ends."""
+    """The event stream of job ``job_id`` (which must exist), until it ends; progress events
+    of iterations up to ``after_iteration`` (a reconnecting client's Last-Event-ID) are not
+    sent again."""
 
     def current() -> JobRecord | None:
         record = store.get(job_id)
@@ -52,7 +57,7 @@ async def job_events(
             return
         yield sse("status", {"status": record.status})
         last = record.progress_model()
-        if last.iteration > 0:
+        if last.iteration > after_iteration:
             yield sse("progress", last.model_dump(mode="json"), last.iteration)
         if record.terminal:
             yield end(record)
@@ -75,7 +80,7 @@ async def job_events(
             payload = json.loads(message["data"])
             event, data = payload["event"], payload["data"]
             if event == "progress":
-                if data["iteration"] > last.iteration:
+                if data["iteration"] > max(last.iteration, after_iteration):
                     last = last.model_validate(data)
                     yield sse("progress", data, last.iteration)
             elif event == "status":

@@ -2,14 +2,16 @@
 
 from __future__ import annotations
 
-import json
 from collections.abc import Callable
+from typing import Any
 
-from fastapi import HTTPException
 from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
+from service.errors import ApiError
+from service.problems import send_problem
 
-def _too_large(size: int, limit: int) -> list[dict[str, object]]:
+
+def _too_large(size: int, limit: int) -> list[dict[str, Any]]:
     msg = f"the request body is {size} bytes or more, larger than the limit of {limit} bytes"
     return [{"loc": ["body"], "msg": msg, "type": "too_large"}]
 
@@ -17,7 +19,7 @@ def _too_large(size: int, limit: int) -> list[dict[str, object]]:
 class BodySizeLimitMiddleware:
     """Answers 413 when Content-Length, or the bytes actually received, exceed the limit.
 
-    While the app reads the body, the overflow is raised as an HTTPException from ``receive``,
+    While the app reads the body, the overflow is raised as an ApiError from ``receive``,
     which FastAPI's body parsing re-raises as is and the exception handler turns into a 413.
     """
 
@@ -32,7 +34,10 @@ class BodySizeLimitMiddleware:
         limit = self.max_bytes()
         declared = dict(scope["headers"]).get(b"content-length")
         if declared is not None and declared.isdigit() and int(declared) > limit:
-            await self._reject(send, int(declared), limit)
+            errors = _too_large(int(declared), limit)
+            await send_problem(
+                send, 413, errors[0]["msg"], code="too_large", errors=errors, instance=scope["path"]
+            )
             return
         received = 0
 
@@ -42,14 +47,7 @@ class BodySizeLimitMiddleware:
             if message["type"] == "http.request":
                 received += len(message.get("body", b""))
                 if received > limit:
-                    raise HTTPException(413, detail=_too_large(received, limit))
+                    raise ApiError(413, code="too_large", errors=_too_large(received, limit))
             return message
 
         await self.app(scope, limited_receive, send)
-
-    @staticmethod
-    async def _reject(send: Send, size: int, limit: int) -> None:
-        body = json.dumps({"detail": _too_large(size, limit)}).encode()
-        headers = [(b"content-type", b"application/json"), (b"content-length", b"%d" % len(body))]
-        await send({"type": "http.response.start", "status": 413, "headers": headers})
-        await send({"type": "http.response.body", "body": body})

@@ -9,18 +9,25 @@ from __future__ import annotations
 
 from collections.abc import AsyncIterator
 from contextlib import asynccontextmanager
+from typing import Any
 
 import redis
 import redis.asyncio
 from fastapi import FastAPI
+from redis.asyncio.retry import Retry as AsyncRetry
+from redis.backoff import ExponentialBackoff
+from redis.retry import Retry
 
 from schemas.settings import Settings, get_settings
+from schemas.version import __version__
 from service.auth import AuthMiddleware, document_bearer_auth
 from service.errors import install_error_handlers
 from service.headers import ConfiguredCORSMiddleware, SecurityHeadersMiddleware
 from service.limits import BodySizeLimitMiddleware
-from service.logs import configure_logging
+from service.logs import adopt_uvicorn_loggers, configure_logging
 from service.metrics import Metrics, MetricsMiddleware
+from service.openapi import install as install_openapi
+from service.openapi import operation_id
 from service.ratelimit import SubmissionRateLimitMiddleware
 from service.routes import docs, estimates, health, metrics, models, pages, renders, session
 from service.store import Keys
@@ -29,6 +36,11 @@ from service.store.budget import warn_if_unbounded
 
 #: Seconds to wait for a connection to Redis.
 REDIS_CONNECT_TIMEOUT_S = 5.0
+#: A pooled Redis connection idle this long is checked (PING) before it is used, s.
+REDIS_HEALTH_CHECK_S = 2
+#: Retries of a Redis command on a dropped connection, and the longest pause between two, s.
+REDIS_RETRIES = 3
+REDIS_RETRY_CAP_S = 0.5
 #: Allowance for the multipart framing and the request JSON beside the largest file, bytes.
 BODY_OVERHEAD_BYTES = 1024 * 1024
 
@@ -51,16 +63,25 @@ def request_body_limit(settings: Settings) -> int:
 async def lifespan(app: FastAPI) -> AsyncIterator[None]:
     settings = get_settings()
     configure_logging(settings.log_format, quiet=("rq",))
+    adopt_uvicorn_loggers()
     url = settings.effective_redis_url()
     # a hung Redis must not hang requests; the longest blocking call is the render wait
+    # After a Redis restart the pooled connections are dead: a connection idle for
+    # REDIS_HEALTH_CHECK_S is pinged (and remade) before use, and a command that meets a dropped
+    # connection is retried, so the first requests after an outage succeed instead of a 503.
+    reconnect: dict[str, Any] = {
+        "socket_connect_timeout": REDIS_CONNECT_TIMEOUT_S,
+        "health_check_interval": REDIS_HEALTH_CHECK_S,
+        "retry_on_error": [redis.ConnectionError, redis.TimeoutError],
+    }
     app.state.redis = redis.Redis.from_url(
         url,
-        socket_connect_timeout=REDIS_CONNECT_TIMEOUT_S,
         socket_timeout=settings.render_timeout_s + REDIS_CONNECT_TIMEOUT_S,
-        health_check_interval=30,
+        retry=Retry(ExponentialBackoff(cap=REDIS_RETRY_CAP_S), REDIS_RETRIES),
+        **reconnect,
     )
     app.state.aredis = redis.asyncio.Redis.from_url(
-        url, socket_connect_timeout=REDIS_CONNECT_TIMEOUT_S, health_check_interval=30
+        url, retry=AsyncRetry(ExponentialBackoff(cap=REDIS_RETRY_CAP_S), REDIS_RETRIES), **reconnect
     )
     app.state.blobs = open_blob_store(settings)
     app.state.store_source = (app.state.redis, Keys(settings.redis_prefix))
@@ -76,12 +97,13 @@ async def lifespan(app: FastAPI) -> AsyncIterator[None]:
 def create_app() -> FastAPI:
     app = FastAPI(
         title="proxpose",
-        version="0.1.0",
+        version=__version__,
         summary="Pose of a known target from one image, as a service",
         description=DESCRIPTION,
         lifespan=lifespan,
         docs_url=None,  # /docs is service.routes.docs: Swagger UI from local files
         redoc_url=None,
+        generate_unique_id_function=operation_id,
     )
     app.state.metrics = Metrics()
     app.state.metrics.watch_store(
@@ -99,6 +121,7 @@ def create_app() -> FastAPI:
     app.add_middleware(MetricsMiddleware, metrics=app.state.metrics)  # outermost: counts 4xx
     install_error_handlers(app)
     document_bearer_auth(app)
+    install_openapi(app)  # after: its document, with the security schemes, is completed
     for module in (health, metrics, models, estimates, renders, session):
         app.include_router(module.router)
     app.include_router(pages.router)  # the browser pages

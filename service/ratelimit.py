@@ -9,7 +9,6 @@ the limit. (The cap on queued jobs per key is checked when a job is created, see
 
 from __future__ import annotations
 
-import json
 import logging
 import math
 from collections.abc import Callable
@@ -19,6 +18,7 @@ import redis.asyncio
 from starlette.types import ASGIApp, Receive, Scope, Send
 
 from schemas.settings import Settings
+from service.problems import send_problem
 from service.store import Keys, Principal
 
 log = logging.getLogger(__name__)
@@ -84,7 +84,14 @@ class SubmissionRateLimitMiddleware:
         except redis.RedisError as exc:
             log.error("rate limiter: Redis error: %s", exc)
             detail = "the job store (Redis) is unreachable; try again shortly"
-            await _answer(send, 503, detail, None)
+            await send_problem(
+                send,
+                503,
+                detail,
+                code="unavailable",
+                instance=scope["path"],
+                headers=[(b"retry-after", b"5")],
+            )
             return
         if wait_s is None:
             await self.app(scope, receive, send)
@@ -95,13 +102,11 @@ class SubmissionRateLimitMiddleware:
             f"{settings.submissions_per_minute:g} per minute (bursts of "
             f"{settings.submission_burst}); retry after {retry_s} s"
         )
-        await _answer(send, 429, detail, retry_s)
-
-
-async def _answer(send: Send, status: int, detail: str, retry_after_s: int | None) -> None:
-    body = json.dumps({"detail": detail}).encode()
-    headers = [(b"content-type", b"application/json"), (b"content-length", b"%d" % len(body))]
-    if retry_after_s is not None:
-        headers.append((b"retry-after", str(retry_after_s).encode()))
-    await send({"type": "http.response.start", "status": status, "headers": headers})
-    await send({"type": "http.response.body", "body": body})
+        await send_problem(
+            send,
+            429,
+            detail,
+            code="rate_limited",
+            instance=scope["path"],
+            headers=[(b"retry-after", str(retry_s).encode())],
+        )

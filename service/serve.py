@@ -4,8 +4,9 @@ Redis, as child processes of one supervisor.
 Children run in their own sessions, so Ctrl-C reaches only the supervisor, which then stops them
 in order: the API, the workers (running jobs get ``shutdown_grace_s`` to finish; a second Ctrl-C
 cuts that short), and Redis last, which flushes its append-only file. Children also get SIGTERM
-if the supervisor itself dies (Linux), so nothing is left behind. A worker that dies is restarted;
-if the API or Redis dies, everything stops.
+if the supervisor itself dies (Linux), so nothing is left behind. A child that dies (a worker,
+the API, the embedded Redis) is restarted with backoff; Redis restarts from its append-only
+file, and the others ride out its absence.
 """
 
 from __future__ import annotations
@@ -29,8 +30,12 @@ STOP_TIMEOUT_S = 10.0
 #: only between two renders, and RQ ignores a second signal within 1 s of the first it handled,
 #: so one signal may be swallowed.
 COLD_STOP_REPEAT_S = 2.0
-#: Longest pause before restarting a worker that keeps dying, s.
+#: Pause before restarting a child that died, s; doubled while it keeps dying quickly, up to
+#: RESTART_BACKOFF_MAX_S.
+RESTART_BACKOFF_S = 1.0
 RESTART_BACKOFF_MAX_S = 30.0
+#: A child that dies sooner than this after its start counts as dying quickly, s.
+QUICK_DEATH_S = 60.0
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -62,6 +67,7 @@ class Child:
     proc: subprocess.Popen[bytes] | None = None
     started_at: float = 0.0
     failures: int = 0  # consecutive quick deaths (for the restart backoff)
+    restart_at: float | None = None  # dead, to be started again at this time (monotonic)
 
 
 def _die_with_parent() -> None:
@@ -132,13 +138,7 @@ class Supervisor:
         self.workers = [Child(f"worker-{i + 1}", worker_argv) for i in range(s.workers)]
         for worker in self.workers:
             self._spawn(worker)
-        self.api = Child(
-            "api",
-            [
-                *(sys.executable, "-m", "uvicorn", "service.main:app"),
-                *("--host", s.host, "--port", str(s.port), "--timeout-graceful-shutdown", "5"),
-            ],
-        )
+        self.api = Child("api", self._api_argv())
         self._spawn(self.api)
         if not self._wait_api():
             return _fail("the API did not start (see its log above)")
@@ -150,32 +150,51 @@ class Supervisor:
         )
         return 0
 
+    def _api_argv(self) -> list[str]:
+        """uvicorn with its log lines in our format from the first one (``--log-config``)."""
+        import json
+
+        from service.logs import uvicorn_log_config
+
+        s = self.settings
+        log_config = self.data_dir / "uvicorn-logging.json"
+        self.data_dir.mkdir(parents=True, exist_ok=True)
+        log_config.write_text(json.dumps(uvicorn_log_config(s.log_format)))
+        return [
+            *(sys.executable, "-m", "uvicorn", "service.main:app"),
+            *("--host", s.host, "--port", str(s.port), "--timeout-graceful-shutdown", "5"),
+            *("--log-config", str(log_config)),
+        ]
+
     def _watch(self) -> int:
         while self.signals == 0:
             time.sleep(0.2)
-            for child in (self.redis, self.api):
-                if child is not None and child.proc is not None and child.proc.poll() is not None:
-                    return _fail(f"{child.name} exited with status {child.proc.returncode}")
-            for worker in self.workers:
-                self._restart_if_dead(worker)
+            for child in (self.redis, self.api, *self.workers):
+                if child is not None:
+                    self._heal(child)
         return 0
 
-    def _restart_if_dead(self, worker: Child) -> None:
-        if worker.proc is None or worker.proc.poll() is None:
+    def _heal(self, child: Child) -> None:
+        """Restart ``child`` when it has died, after a pause that doubles while it keeps dying
+        quickly (RESTART_BACKOFF_MAX_S at most). Redis comes back from its append-only file and
+        the workers and the API reconnect to it; queued and running jobs go on."""
+        now = time.monotonic()
+        if child.restart_at is not None:
+            if now >= child.restart_at:
+                child.restart_at = None
+                self._spawn(child)
             return
-        quick = time.monotonic() - worker.started_at < 60.0
-        worker.failures = worker.failures + 1 if quick else 1
-        delay = min(RESTART_BACKOFF_MAX_S, 2.0 ** (worker.failures - 1))
+        if child.proc is None or child.proc.poll() is None:
+            return
+        quick = now - child.started_at < QUICK_DEATH_S
+        child.failures = child.failures + 1 if quick else 1
+        delay = min(RESTART_BACKOFF_MAX_S, RESTART_BACKOFF_S * 2.0 ** (child.failures - 1))
+        child.restart_at = now + delay
         print(
-            f"proxpose: {worker.name} exited with status {worker.proc.returncode}; "
+            f"proxpose: {child.name} exited with status {child.proc.returncode}; "
             f"restarting in {delay:g} s",
             flush=True,
         )
-        deadline = time.monotonic() + delay
-        while time.monotonic() < deadline and self.signals == 0:
-            time.sleep(0.1)
-        if self.signals == 0:
-            self._spawn(worker)
 
     # ------------------------------------------------------------------ children
     def _spawn(self, child: Child) -> None:

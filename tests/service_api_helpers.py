@@ -91,10 +91,24 @@ def queued(r: redis.Redis) -> int:
 def assert_field_error(response: Any, status: int, loc: tuple[str | int, ...]) -> dict[str, Any]:
     assert response.status_code == status, response.text
     assert "Traceback" not in response.text
-    detail = response.json()["detail"]
-    assert isinstance(detail, list), detail
-    locs = [tuple(e["loc"]) for e in detail]
-    hit = [e for e in detail if tuple(e["loc"][: len(loc)]) == loc]
+    body = assert_problem(response, status)
+    errors = body["errors"]
+    assert isinstance(errors, list) and errors, body
+    locs = [tuple(e["loc"]) for e in errors]
+    hit = [e for e in errors if tuple(e["loc"][: len(loc)]) == loc]
     assert hit, f"no error at {loc}; got {locs}"
-    assert all(e["msg"] for e in detail)
+    assert all(e["msg"] and e["type"] for e in errors)
     return hit[0]  # type: ignore[no-any-return]
+
+
+def assert_problem(response: Any, status: int, code: str | None = None) -> dict[str, Any]:
+    """``response`` is RFC 9457 problem details with ``status`` (and ``code``); its body."""
+    assert response.status_code == status, response.text
+    assert response.headers["content-type"].startswith("application/problem+json"), response.headers
+    body = response.json()
+    assert body["status"] == status and body["type"].startswith("urn:proxpose:problem:"), body
+    assert body["title"] and isinstance(body["detail"], str) and body["detail"], body
+    assert body["type"] == "urn:proxpose:problem:" + body["code"], body
+    if code is not None:
+        assert body["code"] == code, body
+    return body  # type: ignore[no-any-return]

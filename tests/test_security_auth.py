@@ -115,7 +115,7 @@ def test_every_v1_route_needs_a_key(
 
 def test_probes_docs_and_static_files_stay_open(client: TestClient) -> None:
     for path in ("/healthz", "/readyz", "/metrics", "/openapi.json", "/docs", "/session"):
-        assert client.get(path).status_code in (200, 503), path  # readyz: 503 without workers
+        assert client.get(path).status_code == 200, path
     assert client.get("/static/api.js").status_code == 200
 
 
@@ -205,7 +205,7 @@ def test_models_are_private_to_their_owners(client: TestClient, r: redis.Redis) 
     assert client.get("/v1/models", headers=bearer(BOB)).json()["items"] == []
     bob_request = request_json(model_id=model_id)
     refused = submit(client, BOB, request=bob_request)
-    assert refused.status_code == 422 and refused.json()["detail"][0]["type"] == "model_not_found"
+    assert refused.status_code == 422 and refused.json()["errors"][0]["type"] == "model_not_found"
     # the same bytes from bob: his own registration under his name, nothing revealed
     second = upload(BOB, "bob's cube")
     assert second.status_code == 201 and second.json()["id"] == model_id

@@ -124,7 +124,7 @@ BAD_OTHERS: dict[str, tuple[str, str, dict[str, Any], int, tuple[str | int, ...]
     "model upload without file": (
         "POST",
         "/v1/models",
-        {"data": {"name": "x"}},
+        {"files": {"name": (None, "x")}},  # multipart, but no file part
         422,
         ("body", "file"),
     ),
@@ -291,11 +291,25 @@ def test_builtin_model_cannot_be_deleted(client: TestClient, r: redis.Redis) -> 
 
 
 def test_probes_without_workers(client: TestClient) -> None:
-    assert client.get("/healthz").json() == {"status": "ok"}
-    ready = client.get("/readyz")
-    assert ready.status_code == 503
-    assert ready.json()["ready"] is False and ready.json()["workers"] == 0
-    assert ready.json()["redis"] is True
+    assert client.get("/healthz").json() == {"status": "ok", "workers": 0}
+    ready = client.get("/readyz")  # ready: it accepts jobs, which queue until a worker starts
+    assert ready.status_code == 200
+    assert ready.json()["ready"] is True and ready.json()["workers"] == 0
+    assert ready.json()["redis"] is True and "no worker" in ready.json()["reason"]
+
+
+def test_readyz_is_a_503_problem_while_redis_is_away(monkeypatch: Any) -> None:
+    from conftest import free_port
+
+    monkeypatch.setenv("PROXPOSE_REDIS_URL", f"redis://127.0.0.1:{free_port()}/0")
+    get_settings.cache_clear()
+    with TestClient(create_app()) as c:
+        ready = c.get("/readyz")
+        assert c.get("/healthz").json() == {"status": "ok", "workers": None}
+    assert ready.status_code == 503 and int(ready.headers["Retry-After"]) > 0
+    assert ready.headers["content-type"].startswith("application/problem+json")
+    body = ready.json()
+    assert body["ready"] is False and body["redis"] is False and body["code"] == "unavailable"
 
 
 def test_render_without_workers_is_503(client: TestClient, r: redis.Redis) -> None:

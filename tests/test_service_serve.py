@@ -133,3 +133,79 @@ def test_serve_end_to_end_then_ctrl_c_stops_everything(tmp_path: Path) -> None:
         assert api.get(again["artifacts"]["overlay_final"]).status_code == 200
     finally:
         stop(proc, log)
+
+
+def child_pid(proc: subprocess.Popen[bytes], marker: bytes) -> int:
+    """The supervisor's child whose command line holds ``marker``."""
+    for pid in descendants(proc.pid):
+        try:
+            if marker in Path(f"/proc/{pid}/cmdline").read_bytes() and alive(pid):
+                return pid
+        except FileNotFoundError:
+            continue
+    raise AssertionError(f"no child with {marker!r}")
+
+
+def wait_new_child(
+    proc: subprocess.Popen[bytes], marker: bytes, old: int, api: httpx.Client, log: Path
+) -> int:
+    deadline = time.monotonic() + READY_TIMEOUT_S
+    while True:
+        assert proc.poll() is None, log.read_text()
+        assert time.monotonic() < deadline, log.read_text()
+        try:
+            pid = child_pid(proc, marker)
+            if pid != old and api.get("/readyz").status_code == 200:
+                return pid
+        except (AssertionError, httpx.TransportError):
+            pass
+        time.sleep(0.2)
+
+
+def test_the_embedded_stack_heals_a_dead_redis_and_a_dead_api(tmp_path: Path) -> None:
+    data_dir, log = tmp_path / "data", tmp_path / "serve.log"
+    env = {k: v for k, v in os.environ.items() if not k.startswith("PROXPOSE_")}
+    env |= {
+        "PROXPOSE_PORT": str(free_port()),
+        "PROXPOSE_EMBEDDED_REDIS_PORT": str(free_port()),
+        "PROXPOSE_DATA_DIR": str(data_dir),
+        "PROXPOSE_SHUTDOWN_GRACE_S": "2",
+    }
+    api = httpx.Client(base_url=f"http://127.0.0.1:{env['PROXPOSE_PORT']}", timeout=120.0)
+    proc = start_serve(env, log, "--no-warmup")
+    try:
+        wait_ready(api, proc, log, workers=1)
+        worker = child_pid(proc, b"worker.cli\x00worker")
+        render = {"model_id": "demo-sat", "camera": CAMERA, "pose": TRUTH, "spp": 32}
+        reference = api.post("/v1/renders", json=render)
+        assert reference.status_code == 200, reference.text
+        request = {"model_id": "demo-sat", "camera": CAMERA, "initial_pose": GUESS}
+        request["options"] = {"max_iterations": 3}
+        files = {"image": ("ref.png", reference.content, "image/png")}
+        queued = api.post("/v1/estimates", files=files, data={"request": json.dumps(request)})
+        assert queued.status_code == 202, queued.text
+        time.sleep(1.5)  # the AOF is fsync'ed every second
+
+        redis_pid = child_pid(proc, b"redis-server")
+        os.kill(redis_pid, signal.SIGKILL)
+        wait_new_child(proc, b"redis-server", redis_pid, api, log)
+        api_pid = child_pid(proc, b"uvicorn")
+        os.kill(api_pid, signal.SIGKILL)
+        wait_new_child(proc, b"uvicorn", api_pid, api, log)
+
+        submitted = api.post("/v1/estimates", files=files, data={"request": json.dumps(request)})
+        assert submitted.status_code == 202, submitted.text
+        for job_id in (queued.json()["id"], submitted.json()["id"]):
+            deadline = time.monotonic() + 180.0
+            while (job := api.get(f"/v1/estimates/{job_id}").json())["status"] in (
+                "queued",
+                "running",
+            ):
+                assert time.monotonic() < deadline, (job, log.read_text()[-3000:])
+                time.sleep(0.2)
+            assert job["status"] == "succeeded", (job, log.read_text()[-3000:])
+        assert child_pid(proc, b"worker.cli\x00worker") == worker  # it rode the outage out
+        assert "redis exited" in log.read_text() and "api exited" in log.read_text()
+    finally:
+        if proc.poll() is None:
+            stop(proc, log)

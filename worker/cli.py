@@ -3,10 +3,12 @@
     proxpose estimate --model MESH --image REF --request REQUEST.json --output DIR
     proxpose render   --model MESH --request REQUEST.json --pose POSE.json --output IMG.png
     proxpose track    --model MESH --images DIR --request REQUEST.json --output OUT
+    proxpose submit | status | wait | fetch | cancel | list | upload-model   (a running service)
 
 Other subcommands (serve, worker, bench, loadtest) are registered by their own modules; each
 is imported only when it runs, so ``estimate`` never loads the web stack and ``serve`` never
-loads Mitsuba in the API process.
+loads Mitsuba in the API process. The remote verbs (:mod:`service.client_cli`) need only the
+client, so they work where only ``pip install proxpose`` was done.
 """
 
 from __future__ import annotations
@@ -18,6 +20,8 @@ from collections.abc import Callable
 from pathlib import Path
 
 from pydantic import ValidationError
+
+from schemas.version import __version__
 
 #: Exit status for unusable input (bad file, bad JSON, failed validation).
 EXIT_BAD_INPUT = 2
@@ -37,6 +41,17 @@ _EXTRA_COMMANDS: list[tuple[str, str, str]] = [
         "move the bytes an older deployment kept in Redis to the blob store, then sweep it",
     ),
 ]
+
+
+#: Packages of the extras: a command that needs a missing one says so instead of a traceback.
+_EXTRA_PACKAGES = frozenset(
+    {"numpy", "mitsuba", "drjit", "cv2", "trimesh", "PIL", "tqdm", "matplotlib"}
+    | {"pydantic_settings", "redis", "rq", "fastapi", "starlette", "uvicorn", "prometheus_client"}
+)
+
+
+#: Module of the verbs that call a running service (submit, status, wait, fetch, ...).
+_REMOTE_VERBS = "service.client_cli"
 
 
 class BadInput(Exception):
@@ -102,6 +117,9 @@ def cmd_estimate(args: argparse.Namespace) -> int:
     for name, png in artifacts.items():
         (args.output / f"{name}.png").write_bytes(png)
     (args.output / "result.json").write_text(result.model_dump_json(indent=2))
+    if args.json:
+        print(result.model_dump_json(indent=2, by_alias=True))
+        return 0
     err = result.errors
     extra = f", error {err.rotation_deg:.4f}° / {err.translation:.4g}" if err else ""
     print(
@@ -188,6 +206,7 @@ def cmd_render(args: argparse.Namespace) -> int:
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="proxpose", description=__doc__.split("\n\n")[0])
     parser.add_argument("-v", "--verbose", action="store_true", help="log progress details")
+    parser.add_argument("--version", action="version", version=f"proxpose {__version__}")
     sub = parser.add_subparsers(dest="command", required=True)
 
     p = sub.add_parser("estimate", help="estimate a pose from one image")
@@ -196,6 +215,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--request", type=Path, required=True, help="REQUEST.json")
     p.add_argument("--output", type=Path, required=True, help="directory for result + PNGs")
     p.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
+    p.add_argument("--json", action="store_true", help="print result.json on stdout")
     p.set_defaults(handler=cmd_estimate)
 
     p = sub.add_parser("track", help="track the pose through an image sequence")
@@ -216,8 +236,11 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--spp", type=int, default=64, help="samples per pixel (default 64)")
     p.set_defaults(handler=cmd_render)
 
+    import importlib
     import importlib.util
 
+    # the remote verbs live with the client (loaded by name, like the commands below)
+    importlib.import_module(_REMOTE_VERBS).add_commands(sub)
     for name, module, help_text in _EXTRA_COMMANDS:
         if importlib.util.find_spec(module) is None:
             continue
@@ -230,7 +253,23 @@ def build_parser() -> argparse.ArgumentParser:
 def _add_arguments(module: str, parser: argparse.ArgumentParser) -> None:
     import importlib
 
-    importlib.import_module(module).add_arguments(parser)
+    try:
+        importlib.import_module(module).add_arguments(parser)
+    except ImportError as exc:  # an extra that is not installed (pip install 'proxpose[all]')
+        parser.add_argument("rest", nargs=argparse.REMAINDER, help=argparse.SUPPRESS)
+        parser.set_defaults(handler=_missing(exc.name or str(exc)))
+
+
+def _missing(package: str) -> Handler:
+    def run(args: argparse.Namespace) -> int:
+        print(
+            f"error: '{args.command}' needs {package}, which is not installed: "
+            "pip install 'proxpose[all]'",
+            file=sys.stderr,
+        )
+        return EXIT_BAD_INPUT
+
+    return run
 
 
 def _lazy(module: str) -> Handler:
@@ -252,6 +291,15 @@ def main(argv: list[str] | None = None) -> int:
 
     try:
         return int(args.handler(args))
+    except ModuleNotFoundError as exc:
+        if exc.name in _EXTRA_PACKAGES:
+            print(
+                f"error: '{args.command}' needs {exc.name}, which is not installed: "
+                "pip install 'proxpose[all]' (the engine and the service)",
+                file=sys.stderr,
+            )
+            return EXIT_BAD_INPUT
+        raise
     except BadInput as exc:
         print(f"error: {exc}", file=sys.stderr)
         return EXIT_BAD_INPUT

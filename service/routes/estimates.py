@@ -11,14 +11,14 @@ from typing import Annotated, Any
 from fastapi import APIRouter, File, Form, Header, Query, Request, Response, UploadFile
 from fastapi.responses import StreamingResponse
 from pydantic import ValidationError
-from starlette.exceptions import HTTPException
 
-from schemas.jobs import EstimateCreate, EstimateList, EstimatePublic
+from schemas.jobs import EstimateCreate, EstimateList, EstimatePublic, JobStatus
+from schemas.models import MODEL_ID_PATTERN
 from schemas.names import DEMO_MODEL_ID
 from schemas.settings import Settings
 from service.auth import PrincipalDep
-from service.deps import AsyncRedisDep, JobStoreDep, ModelStoreDep, SettingsDep
-from service.errors import echo, field_error, not_found, validation_failed
+from service.deps import AsyncRedisDep, JobStoreDep, ModelStoreDep, Multipart, SettingsDep
+from service.errors import ApiError, echo, field_error, not_found, validation_failed
 from service.events import job_events
 from service.resources import estimate_location, estimate_public, estimate_summary
 from service.store import ActiveJobsLimitError, JobRecord, JobStore, ModelStore, Reaper
@@ -114,8 +114,10 @@ def _replay(earlier: dict[str, str], fingerprint: str, jobs: JobStore) -> JobRec
         )
     record = jobs.get(earlier["job_id"])
     if record is None:
-        raise HTTPException(
-            409, detail="a request with this Idempotency-Key is still being processed; retry"
+        raise ApiError(
+            409,
+            detail="a request with this Idempotency-Key is still being processed; retry",
+            code="idempotency_in_progress",
         )
     return record
 
@@ -125,6 +127,7 @@ def _replay(earlier: dict[str, str], fingerprint: str, jobs: JobStore) -> JobRec
     status_code=202,
     response_model=EstimatePublic,
     summary="Submit a pose estimate",
+    dependencies=[Multipart],
     description="Multipart: `image` (PNG, JPEG or TIFF of exactly the camera's size) and "
     "`request` (JSON: the CLI's REQUEST.json plus `model_id`). Answers 202 with the job and "
     "`Location: /v1/estimates/{id}`. With an `Idempotency-Key` header, a retry of the same "
@@ -132,6 +135,7 @@ def _replay(earlier: dict[str, str], fingerprint: str, jobs: JobStore) -> JobRec
     responses={
         409: {"description": "The same Idempotency-Key is being processed right now."},
         413: {"description": "The image is larger than max_image_bytes."},
+        415: {"description": "The body is not multipart/form-data."},
         422: {"description": "A field is invalid; `detail[].loc` names it."},
         429: {
             "description": "The key submits too fast, or has max_active_jobs_per_key jobs "
@@ -200,10 +204,11 @@ def create_estimate(
         if idempotency_key is not None:
             jobs.release_idempotency(owner, idempotency_key)
         if isinstance(exc, ActiveJobsLimitError):
-            raise HTTPException(
+            raise ApiError(
                 429,
                 detail=f"{exc}, the most allowed (max_active_jobs_per_key); wait for some to "
                 "finish or cancel some",
+                code="active_jobs_limit",
                 headers={"Retry-After": str(ACTIVE_CAP_RETRY_AFTER_S)},
             ) from exc
         raise
@@ -218,7 +223,11 @@ def create_estimate(
     return estimate_public(record)
 
 
-@router.get("", response_model=EstimateList, summary="List jobs, newest first (paged)")
+@router.get(
+    "",
+    response_model=EstimateList,
+    summary="List jobs, newest first (paged, filtered by status and model)",
+)
 def list_estimates(
     jobs: JobStoreDep,
     settings: SettingsDep,
@@ -227,12 +236,27 @@ def list_estimates(
         str | None,
         Query(pattern=r"^[0-9]{1,18}$", description="`next_cursor` of the previous page."),
     ] = None,
+    status: Annotated[
+        list[JobStatus] | None,
+        Query(description="Only jobs in these states (repeat for several)."),
+    ] = None,
+    model_id: Annotated[
+        str | None, Query(pattern=MODEL_ID_PATTERN, description="Only jobs of this model.")
+    ] = None,
 ) -> EstimateList:
-    records, next_seq = jobs.list_page(limit, int(cursor) if cursor is not None else None)
-    items = [
-        estimate_summary(Reaper(jobs, settings.job_max_attempts).reconcile(record))
-        for record in records
-    ]
+    reaper = Reaper(jobs, settings.job_max_attempts)
+    wanted = set(status) if status else None
+
+    def where(record: JobRecord) -> bool:
+        if model_id is not None and record.model_id != model_id:
+            return False
+        return wanted is None or reaper.reconcile(record).status in wanted
+
+    filtered = wanted is not None or model_id is not None
+    records, next_seq = jobs.list_page(
+        limit, int(cursor) if cursor is not None else None, where if filtered else None
+    )
+    items = [estimate_summary(reaper.reconcile(record)) for record in records]
     return EstimateList(items=items, next_cursor=str(next_seq) if next_seq is not None else None)
 
 
@@ -265,7 +289,9 @@ def cancel_estimate(
     after = None if record.terminal else jobs.request_cancel(job_id)
     if after is None or after.status in ("succeeded", "failed"):
         status = (after or record).status
-        raise HTTPException(409, detail=f"estimate '{job_id}' has already ended ({status})")
+        raise ApiError(
+            409, detail=f"estimate '{job_id}' has already ended ({status})", code="job_ended"
+        )
     if after.status != "cancelled":
         response.status_code = 202
     return estimate_public(after)
@@ -307,8 +333,10 @@ def get_artifact(
     png = jobs.get_artifact(record, stem)
     if png is None:
         names = ", ".join(record.artifacts) or "none yet"
-        raise HTTPException(
-            404, detail=f"estimate '{job_id}' has no artifact '{echo(name)}' (artifacts: {names})"
+        raise ApiError(
+            404,
+            detail=f"estimate '{job_id}' has no artifact '{echo(name)}' (artifacts: {names})",
+            code="not_found",
         )
     etag = f'"{known or hashlib.sha256(png).hexdigest()}"'
     if _etag_matches(request.headers.get("if-none-match"), etag):
@@ -333,11 +361,25 @@ _EVENTS_DOC: dict[int | str, dict[str, Any]] = {
     responses=_EVENTS_DOC,
 )
 def stream_events(
-    job_id: str, jobs: JobStoreDep, aredis: AsyncRedisDep, settings: SettingsDep
+    job_id: str,
+    jobs: JobStoreDep,
+    aredis: AsyncRedisDep,
+    settings: SettingsDep,
+    last_event_id: Annotated[
+        str | None,
+        Header(
+            alias="Last-Event-ID",
+            description="Id of the last event received (an iteration number): a reconnecting "
+            "stream resumes after it.",
+        ),
+    ] = None,
 ) -> StreamingResponse:
     _get_or_404(jobs, job_id, settings)
+    after = int(last_event_id) if last_event_id and last_event_id.isdigit() else 0
     return StreamingResponse(
-        job_events(jobs, aredis, job_id, settings.sse_keepalive_s, settings.job_max_attempts),
+        job_events(
+            jobs, aredis, job_id, settings.sse_keepalive_s, settings.job_max_attempts, after
+        ),
         media_type="text/event-stream",
         headers={"Cache-Control": "no-cache", "X-Accel-Buffering": "no"},
     )

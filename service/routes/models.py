@@ -9,7 +9,6 @@ from pathlib import PurePath
 from typing import Annotated
 
 from fastapi import APIRouter, File, Form, Response, UploadFile
-from starlette.exceptions import HTTPException
 
 from schemas.models import (
     MODEL_ID_HEX_DIGITS,
@@ -20,8 +19,8 @@ from schemas.models import (
 )
 from schemas.names import DEMO_MODEL_ID
 from service.auth import PrincipalDep
-from service.deps import ModelStoreDep, SettingsDep
-from service.errors import field_error, not_found
+from service.deps import ModelStoreDep, Multipart, SettingsDep
+from service.errors import ApiError, field_error, not_found
 from service.uploads import UploadRejected, inspect_model, model_format
 
 router = APIRouter(prefix="/v1/models", tags=["models"])
@@ -33,7 +32,7 @@ def _get_or_404(models: ModelStoreDep, model_id: str) -> ModelPublic:
     model = models.get(model_id) if _ID.match(model_id) else None
     if model is None and model_id == DEMO_MODEL_ID:
         msg = f"model '{model_id}' is not registered yet: the first worker to start registers it"
-        raise HTTPException(404, detail=msg)
+        raise ApiError(404, detail=msg, code="not_found")
     if model is None:
         raise not_found("model", model_id)
     return model
@@ -44,6 +43,7 @@ def _get_or_404(models: ModelStoreDep, model_id: str) -> ModelPublic:
     status_code=201,
     response_model=ModelPublic,
     summary="Register a model file",
+    dependencies=[Multipart],
     description="Upload a mesh (OBJ, PLY, STL, GLB or GLTF with embedded buffers). The id is "
     "the file's content address: uploading the same bytes again answers 200 with the model "
     "already registered (under the name first given).",
@@ -51,6 +51,7 @@ def _get_or_404(models: ModelStoreDep, model_id: str) -> ModelPublic:
         200: {"model": ModelPublic, "description": "This key registered the same file before."},
         403: {"description": "The key has max_models_per_key models already."},
         413: {"description": "The file is larger than max_model_bytes."},
+        415: {"description": "The body is not multipart/form-data."},
         422: {"description": "Not a readable mesh, too many faces, or a bad name."},
         429: {"description": "The key submits too fast; see `Retry-After`."},
     },
@@ -91,10 +92,11 @@ def create_model(
         return existing
     quota = settings.max_models_per_key
     if quota and models.owned(principal.name) >= quota:
-        raise HTTPException(
+        raise ApiError(
             403,
             detail=f"API key '{principal.name}' has registered {quota} models, the most allowed "
             "(max_models_per_key); delete one first",
+            code="model_quota",
         )
     try:
         info = inspect_model(data, file_format, settings.max_model_faces)
@@ -143,6 +145,8 @@ def get_model(model_id: str, models: ModelStoreDep) -> ModelPublic:
 def delete_model(model_id: str, models: ModelStoreDep) -> Response:
     model = _get_or_404(models, model_id)
     if model.builtin:
-        raise HTTPException(409, detail=f"model '{model_id}' is built in and cannot be deleted")
+        raise ApiError(
+            409, detail=f"model '{model_id}' is built in and cannot be deleted", code="builtin"
+        )
     models.delete(model_id)
     return Response(status_code=204)

@@ -7,14 +7,16 @@ import math
 import uuid
 
 from fastapi import APIRouter, Response
-from starlette.exceptions import HTTPException
 
 from schemas.jobs import RenderCreate
 from schemas.names import DEMO_MODEL_ID, JobErrorCode
 from service.deps import KeysDep, ModelStoreDep, QueuesDep, RedisDep, SettingsDep
-from service.errors import field_error
+from service.errors import ApiError, field_error
 
 router = APIRouter(prefix="/v1/renders", tags=["renders"])
+
+#: Retry-After of a render refused because no worker runs, s.
+NO_WORKER_RETRY_AFTER_S = 10
 
 #: Engine error codes that are the request's fault, with the field they concern.
 _CLIENT_ERRORS: dict[JobErrorCode, tuple[str, ...]] = {
@@ -53,7 +55,12 @@ def create_render(
         msg = f"no model '{body.model_id}' is registered (see GET /v1/models)"
         raise field_error(422, ("body", "model_id"), msg, "model_not_found")
     if queues.live_workers() == 0:
-        raise HTTPException(503, detail="no worker is running; start one with `proxpose worker`")
+        raise ApiError(
+            503,
+            detail="no worker is running; start one with `proxpose worker`",
+            code="no_worker",
+            headers={"Retry-After": str(NO_WORKER_RETRY_AFTER_S)},
+        )
     render_id = uuid.uuid4().hex
     request_json = body.engine_request().model_dump_json(exclude_unset=True)
     timeout_s = settings.render_timeout_s
@@ -62,21 +69,24 @@ def create_render(
     if popped is None:
         queues.remove(queues.renders, render_id)
         depth = queues.depths()["renders"]
-        raise HTTPException(
+        raise ApiError(
             504,
             detail=f"no worker finished the render within {timeout_s:g} s "
             f"({depth} renders still queued); try again or add workers",
+            code="timeout",
         )
     outcome = json.loads(popped[1])
     if outcome["status"] != "succeeded":
         error = outcome["error"]
         if error["code"] in _CLIENT_ERRORS:
             raise field_error(422, _CLIENT_ERRORS[error["code"]], error["message"], error["code"])
-        raise HTTPException(500, detail=f"render failed: {error['message']} [{error['code']}]")
+        raise ApiError(
+            500, detail=f"render failed: {error['message']} [{error['code']}]", code=error["code"]
+        )
     pipe = r.pipeline()
     pipe.get(keys.render_png(render_id))
     pipe.delete(keys.render_png(render_id))
     png, _ = pipe.execute()
     if png is None:
-        raise HTTPException(500, detail="the render's image expired before it could be sent")
+        raise ApiError(500, detail="the render's image expired before it could be sent")
     return Response(png, media_type="image/png")

@@ -3,19 +3,23 @@
 // HttpOnly cookie that the key form (/session) sets, and same-origin fetches carry it; a 401
 // (the cookie expired or was signed out elsewhere) sends the browser back to that form.
 
+// Errors are RFC 9457 problem details: {type, title, status, detail, code, errors: [{loc, msg,
+// type}]}; `errors` lists the bad fields (empty when the fault is not in a field).
 export class ApiError extends Error {
-  constructor(status, detail) {
-    super(describeDetail(status, detail));
+  constructor(status, problem) {
+    super(describeProblem(status, problem));
     this.status = status;
-    this.detail = detail;
+    this.problem = problem;
+    this.code = problem.code || null;
+    this.errors = Array.isArray(problem.errors) ? problem.errors : [];
   }
 }
 
-function describeDetail(status, detail) {
-  if (Array.isArray(detail)) {
-    return detail.map((d) => `${(d.loc || []).join(".")}: ${d.msg}`).join("; ");
+function describeProblem(status, problem) {
+  if (Array.isArray(problem.errors) && problem.errors.length) {
+    return problem.errors.map((d) => `${(d.loc || []).join(".")}: ${d.msg}`).join("; ");
   }
-  if (typeof detail === "string") return detail;
+  if (typeof problem.detail === "string") return problem.detail;
   return `the service answered ${status}`;
 }
 
@@ -23,18 +27,18 @@ function describeDetail(status, detail) {
 export async function apiFetch(path, options = {}) {
   const response = await fetch(path, { credentials: "same-origin", ...options });
   if (!response.ok && response.status !== 304) {
-    let detail = null;
+    let problem = {};
     try {
-      detail = (await response.json()).detail;
+      problem = await response.json();
     } catch {
-      detail = response.statusText;
+      problem = { detail: response.statusText };
     }
     if (response.status === 401) signIn();
     if (response.status === 429) {
       const wait = response.headers.get("Retry-After");
       notice(`Too many submissions: try again${wait ? ` in ${wait} s` : " shortly"}.`);
     }
-    throw new ApiError(response.status, detail);
+    throw new ApiError(response.status, problem);
   }
   return response;
 }

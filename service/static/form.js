@@ -233,10 +233,10 @@ function showErrors(errors) {
 }
 
 function apiErrors(error) {
-  if (!(error instanceof ApiError) || !Array.isArray(error.detail)) {
+  if (!(error instanceof ApiError) || !error.errors.length) {
     return [{ path: "", msg: error.message }];
   }
-  return error.detail.map((d) => {
+  return error.errors.map((d) => {
     const loc = (d.loc || []).filter((p) => p !== "body" && p !== "request");
     return { path: loc.join("."), msg: d.msg };
   });

@@ -10,6 +10,12 @@ const IDLE_REFRESH_MS = 30000;
 
 const state = { jobs: [], cursor: null, modelNames: new Map(), timer: null };
 
+/** The list's query for the chosen status filter (filtered by the API, so pages stay full). */
+function filterQuery() {
+  const filter = document.getElementById("status-filter").value;
+  return filter ? `&status=${encodeURIComponent(filter)}` : "";
+}
+
 function row(job) {
   const id = el("a", { href: `/estimates/${job.id}`, title: job.id }, el("code", {}, job.id.slice(0, 8)));
   const outcome = job.outcome;
@@ -67,7 +73,7 @@ async function refresh() {
   let active = 0;
   try {
     const limit = Math.min(100, Math.max(PAGE_SIZE, state.jobs.length));
-    const page = await apiJson(`/v1/estimates?limit=${limit}`);
+    const page = await apiJson(`/v1/estimates?limit=${limit}${filterQuery()}`);
     if (state.jobs.length <= limit) {
       state.jobs = page.items;
       state.cursor = page.next_cursor;
@@ -93,7 +99,7 @@ function tick() {
 
 async function loadOlder() {
   try {
-    const page = await apiJson(`/v1/estimates?limit=${PAGE_SIZE}&cursor=${state.cursor}`);
+    const page = await apiJson(`/v1/estimates?limit=${PAGE_SIZE}&cursor=${state.cursor}${filterQuery()}`);
     const seen = new Set(state.jobs.map((j) => j.id));
     state.jobs.push(...page.items.filter((j) => !seen.has(j.id)));
     state.cursor = page.next_cursor;
@@ -104,7 +110,12 @@ async function loadOlder() {
 }
 
 export async function initJobs() {
-  document.getElementById("status-filter").addEventListener("change", render);
+  document.getElementById("status-filter").addEventListener("change", () => {
+    state.jobs = [];
+    state.cursor = null;
+    render();
+    refresh();
+  });
   document.getElementById("jobs-more").addEventListener("click", loadOlder);
   await loadModelNames();
   await refresh();

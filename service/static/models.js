@@ -98,8 +98,8 @@ async function deleteModel(model) {
 
 function showUploadErrors(error) {
   const box = $("upload-errors");
-  const items = error instanceof ApiError && Array.isArray(error.detail)
-    ? error.detail.map((d) => `${(d.loc || []).filter((p) => p !== "body").join(".")}: ${d.msg}`)
+  const items = error instanceof ApiError && error.errors.length
+    ? error.errors.map((d) => `${(d.loc || []).filter((p) => p !== "body").join(".")}: ${d.msg}`)
     : [error.message];
   box.replaceChildren(el("p", { text: "The model was not registered:" }),
     el("ul", {}, items.map((m) => el("li", { text: m }))));

@@ -21,7 +21,7 @@ from __future__ import annotations
 import hashlib
 import json
 import logging
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from typing import Any
 
 import redis
@@ -180,38 +180,54 @@ class JobStore:
             return self.blobs.get(str(ref["blob"]))
         return self.r.get(self.keys.job_artifact(record.id, name))  # type: ignore[return-value]
 
-    def list_page(self, limit: int, before_seq: int | None) -> tuple[list[JobRecord], int | None]:
-        """Up to ``limit`` jobs, newest first, created before ``before_seq``; and the cursor of
-        the next page (None on the last). Index entries of expired jobs are pruned on the way."""
+    def list_page(
+        self,
+        limit: int,
+        before_seq: int | None,
+        where: Callable[[JobRecord], bool] | None = None,
+    ) -> tuple[list[JobRecord], int | None]:
+        """Up to ``limit`` jobs, newest first, created before ``before_seq`` (and for which
+        ``where`` holds); and the cursor of the next page (None on the last). A page scans at
+        most LIST_SCAN_MAX index entries: a sparse filter may give a short page with a cursor.
+        Index entries of expired jobs are pruned on the way."""
         index = self.keys.jobs_index
         if self.viewer is not None and not self.viewer.admin:
             index = self.keys.owner_jobs(self.viewer.name)
         found: list[JobRecord] = []
         upper = f"({before_seq}" if before_seq is not None else "+inf"
-        scanned = 0
+        scanned, exhausted, last_seq = 0, False, None
         while len(found) <= limit and scanned < LIST_SCAN_MAX:
             batch: list[tuple[bytes, float]] = self.r.zrevrangebyscore(  # type: ignore[assignment]
                 index, upper, "-inf", start=0, num=limit + 1, withscores=True
             )
             if not batch:
+                exhausted = True
                 break
             ids = [text(member) or "" for member, _score in batch]
             pipe = self.r.pipeline()
             for job_id in ids:
                 pipe.hgetall(self.keys.job(job_id))
             gone = []
-            for job_id, raw in zip(ids, pipe.execute(), strict=True):
-                if raw:
-                    found.append(JobRecord.from_hash(raw))
-                else:
+            scores = [int(score) for _member, score in batch]
+            for job_id, seq, raw in zip(ids, scores, pipe.execute(), strict=True):
+                if len(found) > limit:
+                    break
+                last_seq = seq
+                if not raw:
                     gone.append(job_id)
+                    continue
+                record = JobRecord.from_hash(raw)
+                if where is None or where(record):
+                    found.append(record)
             if gone:
                 self.r.zrem(index, *gone)
             scanned += len(batch)
-            upper = f"({int(batch[-1][1])}"
+            upper = f"({last_seq}"
         page = found[:limit]
-        next_cursor = page[-1].seq if len(found) > limit else None
-        return page, next_cursor
+        if len(found) > limit:
+            return page, page[-1].seq
+        # the scan budget ran out before the end of the index: go on from where it stopped
+        return page, last_seq if not exhausted and scanned >= LIST_SCAN_MAX else None
 
     # ------------------------------------------------------------------ idempotency
     def claim_idempotency(

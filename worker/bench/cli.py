@@ -129,6 +129,15 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         help="where iss, aura and phobos live (default: ../shared/models)",
     )
     parser.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
+    _add_sequence_arguments(parser)
+    parser.add_argument(
+        "--sensor",
+        action="store_true",
+        help="only compare Mitsuba's batch sensor with separate perturbation renders",
+    )
+
+
+def _add_sequence_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--sequences",
         type=_csv,
@@ -141,11 +150,6 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "--frames", type=int, default=24, help="--sequences: frames per sequence (default 24)"
     )
     parser.add_argument("--no-chained", action="store_true", help="--sequences: the tracker only")
-    parser.add_argument(
-        "--sensor",
-        action="store_true",
-        help="only compare Mitsuba's batch sensor with separate perturbation renders",
-    )
 
 
 class Progress:

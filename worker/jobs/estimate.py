@@ -21,21 +21,31 @@ from rq.timeouts import JobTimeoutException
 
 from schemas.estimate import EstimateRequest, IterationRecord
 from schemas.jobs import JobError, Progress
-from schemas.settings import Settings
+from schemas.settings import Settings, get_settings
 from service.logs import log_context
-from service.store import JobRecord, JobStats, JobStore, Leases, ModelStore, Reaper
+from service.store import JobRecord, JobStats, JobStore, Keys, Leases, ModelStore, Reaper
 from service.store.blobs import BlobStoreUnavailable
 from worker.engine.exceptions import EstimationCancelled, ProxposeError
 from worker.entry import run_estimate
 from worker.jobs.context import job_blobs, job_context, worker_name
-from worker.jobs.lease import CancelFlag, LeaseKeeper
+from worker.jobs.lease import STOP_NOW, CancelFlag, LeaseKeeper
 from worker.jobs.models import fetch_model_file
+from worker.jobs.outage import (
+    OUTAGE_ERRORS,
+    OutageNotice,
+    call_through_outage,
+    is_outage,
+    wait_for_redis,
+)
 
 log = logging.getLogger(__name__)
 
 #: Pause before a job that found the blob store unavailable goes back to the queue, per
 #: attempt so far, s (a store restarting has time to come back before the next attempt).
 STORE_RETRY_PAUSE_S = 2.0
+#: Longest a job waits for Redis to come back (to start, to store its result, to hand itself
+#: back), s; past it the job is left to the lease and the reapers.
+OUTAGE_WAIT_MAX_S = 600.0
 
 
 def _interruption(exc: BaseException) -> BaseException | None:
@@ -59,8 +69,15 @@ def run_estimate_job(job_id: str) -> None:
     leases = Leases(store, settings.job_lease_s)
     job = get_current_job()
     worker = worker_name()
-    record = leases.start(job_id, worker, job.id if job is not None else "")
-    if record is None:
+    notice = OutageNotice(f"job {job_id}")
+    record = call_through_outage(
+        lambda: leases.start(job_id, worker, job.id if job is not None else ""),
+        r,
+        notice,
+        STOP_NOW.is_set,
+        OUTAGE_WAIT_MAX_S,
+    )
+    if not isinstance(record, JobRecord):
         log.info("job %s is no longer queued (cancelled, expired or requeued): skipped", job_id)
         return
     attempt = record.attempts
@@ -75,13 +92,16 @@ def run_estimate_job(job_id: str) -> None:
                 models = ModelStore(r, keys, blobs=blobs)
                 status, code = _estimate(store, flag, record, models, settings)
             except BaseException as exc:
+                if is_outage(exc) and _interruption(exc) is None:
+                    status, code = _hand_back_after_outage(store, leases, record, attempt, notice)
+                    return  # not an error of the RQ job: it only carried this attempt
                 status, code = _failed(store, leases, flag, record, exc, timeout_s, settings)
                 if not isinstance(exc, Exception) or code == "internal_error":
                     raise  # a stop signal ends the worker; RQ keeps internal errors too
             finally:
                 log.info("job %s: attempt %d ended: %s %s", job_id, attempt, status, code or "")
-                if status not in ("superseded", "stopped", "retried"):
-                    JobStats(r, keys).record("estimate", status, time.monotonic() - t0, code)
+                if status not in ("superseded", "stopped", "retried", "interrupted"):
+                    _record_stats(r, keys, status, time.monotonic() - t0, code)
 
 
 def _estimate(
@@ -91,12 +111,18 @@ def _estimate(
     other than a stop requested through ``flag`` propagate (see _failed)."""
     job_id, attempt = record.id, flag.keeper.attempt
 
+    notice = OutageNotice(f"job {job_id}: progress")
+
     def on_iteration(rec: IterationRecord, max_iterations: int) -> None:
         progress = Progress(
             iteration=rec.iteration, max_iterations=max_iterations, cost=rec.cost, stage=rec.stage
         )
-        if not flag.leases.set_progress(job_id, attempt, progress):
-            flag.keeper.lost.set()
+        try:
+            if not flag.leases.set_progress(job_id, attempt, progress):
+                flag.keeper.lost.set()
+            notice.ok()
+        except OUTAGE_ERRORS as exc:  # progress is a report: the estimate goes on without it
+            notice.failed(exc)
 
     request = EstimateRequest.model_validate_json(record.request)
     image = store.get_image(record)
@@ -124,7 +150,17 @@ def _estimate(
 
 
 def _finish(store: JobStore, record: JobRecord, attempt: int, status: str, **outcome: Any) -> None:
-    if not store.finish(record.id, status, attempt=attempt, **outcome):
+    """Store the outcome, waiting for Redis through an outage (up to OUTAGE_WAIT_MAX_S): only
+    the attempt that still holds the job can store it, so a late one is dropped, not doubled."""
+    notice = OutageNotice(f"job {record.id}: storing its {status}")
+    finished = call_through_outage(
+        lambda: store.finish(record.id, status, attempt=attempt, **outcome),
+        store.r,
+        notice,
+        STOP_NOW.is_set,
+        OUTAGE_WAIT_MAX_S,
+    )
+    if not finished:
         log.warning(
             "job %s: attempt %d was superseded; its %s is dropped", record.id, attempt, status
         )
@@ -201,6 +237,27 @@ def _store_unavailable(
     error = JobError(code="store_unavailable", message=message)
     _finish(store, record, attempt, "failed", error=error)
     return "failed", "store_unavailable"
+
+
+def _hand_back_after_outage(
+    store: JobStore, leases: Leases, record: JobRecord, attempt: int, notice: OutageNotice
+) -> tuple[str, str | None]:
+    """The attempt met Redis away: wait for it, then put the job back in the queue at once (if
+    Redis stays away, the lease lapses meanwhile and any worker's reaper requeues it)."""
+    log.warning("job %s: attempt %d interrupted by a Redis outage", record.id, attempt)
+    settings = get_settings()
+    if wait_for_redis(store.r, notice, STOP_NOW.is_set, OUTAGE_WAIT_MAX_S):
+        _give_back(leases, store, record.id, attempt, settings.job_max_attempts)
+    return "interrupted", None
+
+
+def _record_stats(
+    r: redis.Redis, keys: Keys, status: str, seconds: float, code: str | None
+) -> None:
+    try:
+        JobStats(r, keys).record("estimate", status, seconds, code)
+    except OUTAGE_ERRORS as exc:  # statistics are not worth waiting for
+        log.warning("could not record the job's statistics: %s", exc)
 
 
 def _give_back(

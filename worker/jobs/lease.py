@@ -15,6 +15,7 @@ from types import TracebackType
 import redis
 
 from service.store import Leases
+from worker.jobs.outage import OUTAGE_ERRORS, OutageNotice
 
 log = logging.getLogger(__name__)
 
@@ -37,12 +38,16 @@ class LeaseKeeper:
         self._thread = threading.Thread(target=self._run, name=f"lease-{job_id}", daemon=True)
 
     def _run(self) -> None:
+        notice = OutageNotice(f"job {self.job_id}: lease of attempt {self.attempt}")
         while not self._stop.wait(self.leases.renew_interval_s):
             try:
                 if not self.leases.renew(self.job_id, self.attempt):
                     log.warning("job %s: attempt %d no longer holds the job", *self._ids())
                     self.lost.set()
                     return
+                notice.ok()
+            except OUTAGE_ERRORS as exc:
+                notice.failed(exc)
             except redis.RedisError as exc:
                 log.warning(
                     "job %s: could not renew the lease of attempt %d: %s", *self._ids(), exc
@@ -92,7 +97,10 @@ class CancelFlag:
         if now - self._last_poll < CANCEL_POLL_S:
             return None
         self._last_poll = now
-        owned, cancel = self.leases.check(self.keeper.job_id, self.keeper.attempt)
+        try:
+            owned, cancel = self.leases.check(self.keeper.job_id, self.keeper.attempt)
+        except OUTAGE_ERRORS:  # Redis away: go on (the lease keeper reports the outage)
+            return None
         if not owned:
             self.keeper.lost.set()
             return "superseded"

@@ -24,6 +24,7 @@ import os
 import socket
 import threading
 import time
+from collections.abc import Callable
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -82,16 +83,97 @@ def run(args: argparse.Namespace) -> int:
     if demo.register() and demo.model is not None and not args.no_warmup:
         _warm_up(settings.data_dir, demo.model)
     _forget_dead_local_workers(r)
-    worker = _worker_class()(
-        Queues(r, keys).all(),
-        connection=r,
-        name=args.name or f"{socket.gethostname()}-{os.getpid()}",
-        serializer=JSONSerializer,
-        worker_ttl=WORKER_TTL_S,
+    name = args.name or f"{socket.gethostname()}-{os.getpid()}"
+    return _work_through_outages(
+        lambda: _worker_class()(
+            Queues(r, keys).all(),
+            connection=r,
+            name=name,
+            serializer=JSONSerializer,
+            worker_ttl=WORKER_TTL_S,
+        ),
+        r,
+        lambda worker: Maintenance(worker, r, settings, job_blobs(settings), demo),
+        args.burst,
     )
-    with Maintenance(worker, r, settings, job_blobs(settings), demo):
-        worker.work(burst=args.burst, logging_level="INFO")
-    return 0
+
+
+def _work_through_outages(
+    make_worker: Callable[[], Any],
+    r: redis.Redis,
+    maintenance: Callable[[Any], Maintenance],
+    burst: bool,
+) -> int:
+    """RQ's work loop, started again whenever it ends for a Redis outage (RQ quits on one):
+    wait for Redis with capped backoff, clear this worker's stale registration, go on. It ends
+    on a stop signal, or in burst mode when the queues are empty."""
+    import redis as redis_lib
+    from rq.exceptions import StopRequested
+
+    from worker.jobs.lease import STOP_NOW
+    from worker.jobs.outage import OUTAGE_BACKOFF_MAX_S, OutageNotice, is_outage, wait_for_redis
+
+    notice = OutageNotice("worker")
+    rq_log = logging.getLogger("rq.worker")
+    if not any(isinstance(f, _RepeatedRetryFilter) for f in rq_log.filters):
+        rq_log.addFilter(_RepeatedRetryFilter())
+    restarts = 0
+    while True:
+        worker = make_worker()
+        started = time.monotonic()
+        failure: BaseException | None = None
+        try:
+            with maintenance(worker):
+                worker.work(burst=burst, logging_level="INFO")
+        except redis_lib.RedisError as exc:  # raised from RQ's teardown, Redis being away
+            failure = exc
+        if worker.stop_signalled or STOP_NOW.is_set() or (burst and failure is None):
+            return 0
+        if failure is not None and not is_outage(failure):
+            raise failure
+        try:
+            redis_ok = wait_for_redis(r, notice, lambda w=worker: bool(w.stop_signalled))
+            # RQ also quits on errors of its own; do not spin if Redis was fine all along
+            quick = time.monotonic() - started < 5.0
+            restarts = restarts + 1 if quick else 0
+            time.sleep(min(OUTAGE_BACKOFF_MAX_S, 0.5 * restarts))
+        except (StopRequested, KeyboardInterrupt):
+            return 0
+        if not redis_ok or worker.stop_signalled:
+            return 0
+        log.warning(
+            "worker %s: RQ's work loop ended (Redis outage); starting it again", worker.name
+        )
+        _forget_worker(r, worker)
+
+
+def _forget_worker(r: redis.Redis, worker: Any) -> None:
+    """Drop ``worker``'s registration (a restarted loop registers the same name again, and RQ
+    refuses a name whose key is still alive)."""
+    from rq.worker_registration import unregister
+
+    pipe = r.pipeline()
+    unregister(worker, pipe)
+    pipe.delete(worker.key)
+    pipe.execute()
+
+
+class _RepeatedRetryFilter(logging.Filter):
+    """RQ logs "could not connect to Redis instance ... retrying" on every retry of its wait
+    for a job: let one through per outage (one quiet minute ends an outage)."""
+
+    QUIET_S = 60.0
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.last = float("-inf")
+
+    def filter(self, record: logging.LogRecord) -> bool:
+        if "could not connect to Redis" not in record.getMessage():
+            return True
+        now, last = time.monotonic(), self.last
+        self.last = now
+        return now - last > self.QUIET_S
 
 
 def _worker_class() -> type[Any]:
@@ -102,6 +184,12 @@ def _worker_class() -> type[Any]:
 
     class ProxposeWorker(SimpleWorker):
         busy = threading.Event()
+        #: A stop signal arrived (RQ's own flag stays unset when it stops an idle worker).
+        stop_signalled = False
+
+        def request_stop(self, signum: int, frame: Any) -> None:
+            self.stop_signalled = True
+            super().request_stop(signum, frame)
 
         def execute_job(self, job: Any, queue: Any) -> None:
             self.busy.set()
@@ -111,6 +199,7 @@ def _worker_class() -> type[Any]:
                 self.busy.clear()
 
         def request_force_stop(self, signum: int, frame: Any) -> None:
+            self.stop_signalled = True
             # RQ raises SystemExit from the signal handler, wherever the job is (inside a
             # render, a Redis write); instead, a running job stops before its next render and
             # goes back to the queue, then the worker exits as after a warm stop
@@ -183,7 +272,9 @@ class Maintenance:
         import redis
 
         from service.store.blobs import BlobStoreError
+        from worker.jobs.outage import OUTAGE_ERRORS, OutageNotice
 
+        notice = OutageNotice("maintenance")
         while not self._stop.wait(self.sweep_s):
             try:
                 self.reaper.sweep()
@@ -192,6 +283,9 @@ class Maintenance:
                 if self.demo is not None:
                     self.demo.register()
                 self.sweeper.sweep_if_due(self.blob_sweep_s)
+                notice.ok()
+            except OUTAGE_ERRORS as exc:  # once per outage, not every sweep
+                notice.failed(exc)
             except redis.RedisError as exc:
                 log.warning("maintenance: Redis error: %s", exc)
             except BlobStoreError as exc:
