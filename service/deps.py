@@ -82,10 +82,14 @@ ModelStoreDep = Annotated[ModelStore, Depends(get_model_store)]
 QueuesDep = Annotated[Queues, Depends(get_queues)]
 
 
+FORM_TYPES = ("multipart/form-data", "application/x-www-form-urlencoded")
+
+
 async def require_multipart(request: Request) -> None:
-    """415 unless the body is multipart/form-data (the upload routes read nothing else)."""
-    content_type = request.headers.get("content-type", "")
-    if not content_type.lower().startswith("multipart/form-data"):
+    """415 unless the body is a form: multipart/form-data, or a urlencoded form (which cannot
+    carry the files, so validation then names the missing file field with a 422)."""
+    content_type = request.headers.get("content-type", "").lower()
+    if not content_type.startswith(FORM_TYPES):
         got = content_type.split(";")[0].strip() or "none"
         raise ApiError(
             415,

@@ -15,6 +15,7 @@ import subprocess
 import sys
 import time
 from pathlib import Path
+from typing import Any
 
 import httpx
 import pytest
@@ -33,19 +34,17 @@ KEYS = Keys("proxpose")
 OUTAGE_S = 3.0
 
 
-def test_workers_survive_a_redis_outage_and_every_job_succeeds_once(tmp_path: Path) -> None:
-    data, logs = tmp_path / "redis", tmp_path / "logs"
-    data.mkdir()
-    logs.mkdir()
-    port = free_port()
-    env = {
+def _env(tmp_path: Path, port: int) -> dict[str, str]:
+    return {
         **os.environ,
         "PROXPOSE_REDIS_URL": f"redis://127.0.0.1:{port}/0",
         "PROXPOSE_DATA_DIR": str(tmp_path / "data"),
         "PROXPOSE_LOG_FORMAT": "json",
         "PYTHONUNBUFFERED": "1",
     }
-    get_settings.cache_clear()
+
+
+def _render_reference(tmp_path: Path, env: dict[str, str]) -> bytes:
     spec = {
         "data_dir": str(tmp_path / "data"),
         "out": str(tmp_path),
@@ -54,7 +53,42 @@ def test_workers_survive_a_redis_outage_and_every_job_succeeds_once(tmp_path: Pa
     subprocess.run(
         [sys.executable, "-c", RENDER_SCRIPT, json.dumps(spec)], env=env, check=True, cwd=REPO
     )
-    reference = (tmp_path / "ref.png").read_bytes()
+    return (tmp_path / "ref.png").read_bytes()
+
+
+def _outage(redis_proc: subprocess.Popen[bytes], port: int, data: Path, logs: Path) -> Any:
+    """SIGKILL Redis, keep it down for OUTAGE_S, restart it from its AOF."""
+    redis_proc.send_signal(signal.SIGKILL)
+    redis_proc.wait()
+    time.sleep(OUTAGE_S)
+    return start_redis(port, data, logs / "redis.log")
+
+
+def _check_logs(logs: Path, names: list[str], job_ids: list[str]) -> None:
+    """Nothing finished twice, and the outage is logged once per part, without tracebacks."""
+    worker_logs = "".join((logs / f"{name}.log").read_text() for name in names)
+    for job_id in job_ids:
+        succeeded = re.findall(rf"job {job_id}: attempt \d+ ended: succeeded", worker_logs)
+        assert len(succeeded) == 1, (job_id, succeeded)
+    for name in names:
+        lines = (logs / f"{name}.log").read_text().splitlines()
+        outage = [line for line in lines if "Redis is unreachable" in line]
+        assert outage, f"{name} did not log the outage"
+        # once per part (worker, lease, progress, ...), not per retry
+        assert len(outage) <= 8, outage
+        assert not any("unhandled exception, quitting" in line for line in lines)
+        retries = [line for line in lines if "could not connect to Redis" in line]
+        assert len(retries) <= 2, retries  # RQ's own retry line: once per outage
+
+
+def test_workers_survive_a_redis_outage_and_every_job_succeeds_once(tmp_path: Path) -> None:
+    data, logs = tmp_path / "redis", tmp_path / "logs"
+    data.mkdir()
+    logs.mkdir()
+    port = free_port()
+    env = _env(tmp_path, port)
+    get_settings.cache_clear()
+    reference = _render_reference(tmp_path, env)
     redis_proc = start_redis(port, data, logs / "redis.log")
     r = redis.Redis(port=port)
     api_port = free_port()
@@ -68,6 +102,9 @@ def test_workers_survive_a_redis_outage_and_every_job_succeeds_once(tmp_path: Pa
         response = api.post("/v1/estimates", files=files, data={"request": request})
         assert response.status_code == 202, response.text
         return str(response.json()["id"])
+
+    def alive() -> bool:
+        return all(proc.poll() is None for proc in workers.procs.values())
 
     try:
         workers.ensure(2)
@@ -85,7 +122,7 @@ def test_workers_survive_a_redis_outage_and_every_job_succeeds_once(tmp_path: Pa
         assert down.status_code == 503 and int(down.headers["Retry-After"]) > 0
         assert down.headers["content-type"].startswith("application/problem+json")
         time.sleep(OUTAGE_S)
-        assert all(proc.poll() is None for proc in workers.procs.values()), log_tails(logs)
+        assert alive(), log_tails(logs)
         redis_proc = start_redis(port, data, logs / "redis.log")
 
         accepted.append(submit())  # the API recovers by itself
@@ -97,40 +134,21 @@ def test_workers_survive_a_redis_outage_and_every_job_succeeds_once(tmp_path: Pa
             log_tails(logs),
         )
         # the same processes, alive and registered again
-        assert {name: proc.pid for name, proc in workers.procs.items()} == pids
-        assert all(proc.poll() is None for proc in workers.procs.values())
+        assert {name: proc.pid for name, proc in workers.procs.items()} == pids and alive()
         deadline = time.monotonic() + 30
         while not set(pids) <= workers.registered():
             assert time.monotonic() < deadline, log_tails(logs)
             time.sleep(0.2)
         # a second outage while both workers wait for jobs (RQ's loop between jobs)
-        redis_proc.send_signal(signal.SIGKILL)
-        redis_proc.wait()
-        time.sleep(OUTAGE_S)
-        redis_proc = start_redis(port, data, logs / "redis.log")
+        redis_proc = _outage(redis_proc, port, data, logs)
         after = submit()
         assert wait_for(api, after, {"succeeded", "failed"}, logs)["status"] == "succeeded"
         assert {name: proc.pid for name, proc in workers.procs.items()} == pids
-        assert all(proc.poll() is None for proc in workers.procs.values()), log_tails(logs)
+        assert alive(), log_tails(logs)
     finally:
         workers.terminate_all()
         api_proc.terminate()
         api_proc.wait(timeout=30)
         redis_proc.terminate()
         redis_proc.wait(timeout=30)
-
-    # nothing finished twice, and the outage is logged once per part, without tracebacks
-    worker_logs = "".join((logs / f"{name}.log").read_text() for name in pids)
-    for job_id in [*accepted, after]:
-        succeeded = re.findall(rf"job {job_id}: attempt \d+ ended: succeeded", worker_logs)
-        assert len(succeeded) == 1, (job_id, succeeded)
-    for name in pids:
-        lines = (logs / f"{name}.log").read_text().splitlines()
-        outage = [line for line in lines if "Redis is unreachable" in line]
-        assert outage, f"{name} did not log the outage"
-        assert len(outage) <= 8, (
-            outage
-        )  # once per part (worker, lease, progress, ...), not per retry
-        assert not any("unhandled exception, quitting" in line for line in lines)
-        retries = [line for line in lines if "could not connect to Redis" in line]
-        assert len(retries) <= 2, retries  # RQ's own retry line: once per outage
+    _check_logs(logs, list(pids), [*accepted, after])
