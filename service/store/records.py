@@ -25,8 +25,9 @@ def text(value: bytes | str | None) -> str | None:
 
 @dataclass
 class JobRecord:
-    """An estimate job. ``attempts`` counts the starts by a worker; ``rq_id`` names the RQ job
-    of the current enqueueing; ``lost`` lists the attempts whose worker died (for operators)."""
+    """A job (an estimate or a track). ``attempts`` counts the starts by a worker; ``rq_id``
+    names the RQ job of the current enqueueing; ``lost`` lists the attempts whose worker died
+    (for operators)."""
 
     id: str
     status: str
@@ -53,6 +54,10 @@ class JobRecord:
     cancel_requested: bool = False
     fingerprint: str = ""
     lost: list[dict[str, Any]] = field(default_factory=list)
+    #: What the job runs: 'estimate' (one image) or 'track' (a sequence of frames).
+    kind: str = "estimate"
+    #: A job of several inputs (a track): per input {"name": file name, "blob": blob name}.
+    inputs: list[dict[str, str]] = field(default_factory=list)
 
     @classmethod
     def from_hash(cls, raw: dict[bytes, bytes]) -> JobRecord:
@@ -81,6 +86,8 @@ class JobRecord:
             cancel_requested=h.get("cancel_requested") == "1",
             fingerprint=h.get("fingerprint", ""),
             lost=json.loads(h.get("lost") or "[]"),
+            kind=h.get("kind") or "estimate",
+            inputs=json.loads(h.get("inputs") or "[]"),
         )
 
     def queued_hash(self) -> dict[str, str]:
@@ -99,7 +106,9 @@ class JobRecord:
             "rq_id": self.rq_id,
             "timeout_s": str(self.timeout_s),
             "fingerprint": self.fingerprint,
+            "kind": self.kind,
             **({"image_blob": self.image_blob} if self.image_blob else {}),
+            **({"inputs": json.dumps(self.inputs)} if self.inputs else {}),
         }
 
     @property

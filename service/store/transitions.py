@@ -29,6 +29,7 @@ GUARD_FIELDS = (
     "timeout_s",
     "worker",
     "lost",
+    "kind",
 )
 
 #: The job's fields before a transition (None where absent).
