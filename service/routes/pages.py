@@ -1,4 +1,5 @@
-"""The browser pages: ``/`` (estimates and the submit form), ``/estimates/{id}``, ``/models``.
+"""The browser pages: ``/`` (estimates and the submit form), ``/estimates/{id}``,
+``/tracks/{id}``, ``/models``.
 
 The HTML is a server-rendered frame (layout, forms, labels, empty tables); the pages' scripts
 (``service/static/*.js``) fill it from the JSON API under ``/v1``, so the pages and every other
@@ -90,6 +91,22 @@ def estimate_page(request: Request, job_id: str) -> HTMLResponse:
         page="estimate",
         title=f"Estimate {job_id[:8]}",
         script="estimate.js",
+        job_id=job_id,
+    )
+
+
+@router.get("/tracks/{job_id}", response_class=HTMLResponse)
+def track_page(request: Request, job_id: str) -> HTMLResponse:
+    if not _JOB_ID.match(job_id):
+        response = _page(request, "missing.html", page="", title="No such track", what=job_id)
+        response.status_code = 404
+        return response
+    return _page(
+        request,
+        "track.html",
+        page="track",
+        title=f"Track {job_id[:8]}",
+        script="track.js",
         job_id=job_id,
     )
 
