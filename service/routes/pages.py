@@ -79,36 +79,26 @@ def estimates_page(request: Request) -> HTMLResponse:
     return _page(request, "index.html", page="estimates", title="Estimates", script="index.js")
 
 
-@router.get("/estimates/{job_id}", response_class=HTMLResponse)
-def estimate_page(request: Request, job_id: str) -> HTMLResponse:
+def _job_page(request: Request, job_id: str, noun: str, name: str) -> HTMLResponse:
+    """The page of one job: template and script ``name`` (.html, .js), or a 404 page."""
     if not _JOB_ID.match(job_id):
-        response = _page(request, "missing.html", page="", title="No such estimate", what=job_id)
+        response = _page(request, "missing.html", page="", title=f"No such {noun}", what=job_id)
         response.status_code = 404
         return response
+    title = f"{noun.capitalize()} {job_id[:8]}"
     return _page(
-        request,
-        "estimate.html",
-        page="estimate",
-        title=f"Estimate {job_id[:8]}",
-        script="estimate.js",
-        job_id=job_id,
+        request, f"{name}.html", page=name, title=title, script=f"{name}.js", job_id=job_id
     )
+
+
+@router.get("/estimates/{job_id}", response_class=HTMLResponse)
+def estimate_page(request: Request, job_id: str) -> HTMLResponse:
+    return _job_page(request, job_id, "estimate", "estimate")
 
 
 @router.get("/tracks/{job_id}", response_class=HTMLResponse)
 def track_page(request: Request, job_id: str) -> HTMLResponse:
-    if not _JOB_ID.match(job_id):
-        response = _page(request, "missing.html", page="", title="No such track", what=job_id)
-        response.status_code = 404
-        return response
-    return _page(
-        request,
-        "track.html",
-        page="track",
-        title=f"Track {job_id[:8]}",
-        script="track.js",
-        job_id=job_id,
-    )
+    return _job_page(request, job_id, "track", "track")
 
 
 @router.get("/favicon.ico", response_class=FileResponse)

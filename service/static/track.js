@@ -2,15 +2,13 @@
 // frame) and the plots and the frame table grow; once it ends, the overlay of a chosen frame,
 // the worker's trajectory plot and the downloads (track.json, CSV), or the error in words.
 
-import { ApiError, apiFetch, apiJson, blobUrl, notice, readEvents } from "./api.js";
+import { blobUrl, notice } from "./api.js";
 import { ACTIVE, ERROR_HINTS, el, elapsed, num, seconds, timeElement } from "./format.js";
+import { followJob, loadJob, showFailure as failed, showStatus as setStatus, wireCancel } from "./job.js";
 import { plot } from "./plots.js";
 
 const $ = (id) => document.getElementById(id);
 const jobId = $("track").dataset.jobId;
-const RETRY_MS = 2000;
-const POLL_MS = 3000;
-const STREAM_RETRIES = 5;
 const STATUS_WORDS = { tracked: "tracked", reinitialised: "re-initialised", lost: "lost" };
 
 const live = { frames: new Map(), total: 0, ended: false };
@@ -45,10 +43,7 @@ function showFacts(job) {
 }
 
 function showStatus(status, cancelRequested = false) {
-  const node = $("status");
-  node.className = `badge ${status}`;
-  node.textContent = cancelRequested && status === "running" ? "running (stopping)" : status;
-  document.title = `${status} · Track ${jobId.slice(0, 8)} · proxpose`;
+  setStatus($("status"), "Track", jobId, status, cancelRequested);
 }
 
 function showProgress(status) {
@@ -164,14 +159,7 @@ async function showResult(job) {
 }
 
 function showFailure(job) {
-  $("failure").hidden = false;
-  const error = job.error || (job.status === "cancelled"
-    ? { code: "cancelled", message: `This track was cancelled after ${job.frames.length} of ${job.progress.frames_total} frames.` }
-    : { code: "unknown", message: `The track ended as ${job.status}.` });
-  $("failure-title").textContent = job.status === "cancelled" ? "The track was cancelled" : "The track failed";
-  $("failure-message").textContent = error.message;
-  $("failure-hint").textContent = ERROR_HINTS[error.code] || "";
-  $("failure-code").textContent = error.code;
+  failed(job, "track", `This track was cancelled after ${job.frames.length} of ${job.progress.frames_total} frames.`, ERROR_HINTS);
 }
 
 function show(job) {
@@ -192,20 +180,10 @@ function show(job) {
 
 // ------------------------------------------------------------------ following a running track
 async function follow() {
-  for (let attempt = 0; attempt < STREAM_RETRIES && !live.ended; attempt++) {
-    const headers = live.frames.size ? { "Last-Event-ID": String(live.frames.size) } : {};
-    try {
-      await readEvents(`/v1/tracks/${jobId}/events`, onEvent, new AbortController().signal, headers);
-    } catch (error) {
-      if (live.ended || error.name === "AbortError") return;
-      if (error instanceof ApiError && error.status < 500) throw error;
-    }
-    if (!live.ended) await new Promise((resolve) => setTimeout(resolve, RETRY_MS));
-  }
-  while (!live.ended) { // the stream keeps failing (a proxy?): poll instead
-    show(await apiJson(`/v1/tracks/${jobId}`));
-    await new Promise((resolve) => setTimeout(resolve, POLL_MS));
-  }
+  await followJob(`/v1/tracks/${jobId}`, {
+    onEvent, show, ended: () => live.ended,
+    headers: () => (live.frames.size ? { "Last-Event-ID": String(live.frames.size) } : {}),
+  });
 }
 
 function onEvent(name, data) {
@@ -222,33 +200,10 @@ function onEvent(name, data) {
   }
 }
 
-async function cancel() {
-  $("cancel").disabled = true;
-  try {
-    show(await (await apiFetch(`/v1/tracks/${jobId}`, { method: "DELETE" })).json());
-  } catch (error) {
-    notice(`Could not cancel: ${error.message}`);
-  }
-}
-
 async function main() {
-  $("cancel").addEventListener("click", cancel);
-  let job;
-  try {
-    job = await apiJson(`/v1/tracks/${jobId}`);
-  } catch (error) {
-    if (error instanceof ApiError && error.status === 404) {
-      showStatus("missing");
-      $("failure").hidden = false;
-      $("failure-title").textContent = "No such track";
-      $("failure-message").textContent =
-        "There is no track with this id: it never existed or it expired (finished tracks are " +
-        "kept for the service's retention time).";
-      $("failure-code").textContent = "not_found";
-      return;
-    }
-    throw error;
-  }
+  wireCancel($("cancel"), `/v1/tracks/${jobId}`, show);
+  const job = await loadJob(`/v1/tracks/${jobId}`, "track", jobId);
+  if (!job) return;
   show(job);
   if (ACTIVE.has(job.status)) await follow();
 }
