@@ -209,3 +209,11 @@ def test_a_body_over_the_track_limit_is_413_before_parsing(
     frames = frame_files(1, b"\0" * (2 * 1024 * 1024))
     assert_field_error(submit_track(client, frames=frames), 413, ("body",))
     assert waiting(r) == 0
+
+
+def test_the_track_page_is_served_for_an_id_and_404_otherwise(client: TestClient) -> None:
+    page = client.get(f"/tracks/{'a' * 32}")
+    assert page.status_code == 200 and "/static/track.js" in page.text
+    assert 'data-job-id="' + "a" * 32 + '"' in page.text
+    missing = client.get("/tracks/not-an-id")
+    assert missing.status_code == 404 and "No such track" in missing.text
