@@ -1,10 +1,10 @@
 """Server-Sent Events of one job: its state now, then its changes as the worker publishes them.
 
-Events: ``status`` ({"status", ...}) on every change of state, ``progress`` (the job's progress
-object) after every iteration, and ``end`` (the full job resource) once the job is terminal,
-after which the stream closes. Subscribing before reading the record means no event is lost in
-between; duplicates are dropped by iteration number (the event id), and a client that
-reconnects with ``Last-Event-ID`` gets only the iterations after it. Idle streams get a
+Events: ``status`` ({"status", ...}) on every change of state, ``progress`` (after every
+iteration of an estimate, every frame of a track: see :class:`EventShape`), and ``end`` (the
+full job resource) once the job is terminal, after which the stream closes. Subscribing
+before reading the record means no event is lost in between; duplicates are dropped by event id (the iteration, the frames done), and a client that
+reconnects with ``Last-Event-ID`` gets only the progress after it. Idle streams get a
 keep-alive comment, and the record is re-read then, so a lost message or a dead worker cannot
 leave a stream hanging.
 """
