@@ -3,10 +3,10 @@
 Events: ``status`` ({"status", ...}) on every change of state, ``progress`` (after every
 iteration of an estimate, every frame of a track: see :class:`EventShape`), and ``end`` (the
 full job resource) once the job is terminal, after which the stream closes. Subscribing
-before reading the record means no event is lost in between; duplicates are dropped by event id (the iteration, the frames done), and a client that
-reconnects with ``Last-Event-ID`` gets only the progress after it. Idle streams get a
-keep-alive comment, and the record is re-read then, so a lost message or a dead worker cannot
-leave a stream hanging.
+before reading the record means no event is lost in between; duplicates are dropped by event
+id (the iteration, the frames done), and a client that reconnects with ``Last-Event-ID`` gets
+only the progress after it. Idle streams get a keep-alive comment, and the record is re-read
+then, so a lost message or a dead worker cannot leave a stream hanging.
 """
 
 from __future__ import annotations
