@@ -156,3 +156,27 @@ def test_a_running_track_shows_its_frames_so_far_and_stops_when_cancelled(
     end = client.get(f"/v1/tracks/{job['id']}").json()
     assert end["status"] == "cancelled", end["status"]
     assert len(end["frames"]) < 3 * N_FRAMES and end["artifacts"] == {}
+
+
+def test_overlays_cover_a_short_sequence_and_spread_over_a_long_one() -> None:
+    """Every frame of a short sequence gets an overlay; a long one gets at most the budget,
+    its lost and re-initialised frames among them, first and last included."""
+    from schemas.track import TrackFrame, summarise
+    from worker.tracking_overlays import overlay_indices
+
+    def result(statuses: list[str]) -> TrackResult:
+        pose = {"R": [[1, 0, 0], [0, 1, 0], [0, 0, 1]], "q": [0, 0, 0],
+                "quaternion": [1, 0, 0, 0], "t": [0, 0, 10]}  # fmt: skip
+        frames = [
+            TrackFrame(image=f"{k}.png", index=k, pose=pose, converged=True, status=s,
+                       seconds=0.1, renders=3, render_cost=1.0, alignment_score=0.99, features=40)
+            for k, s in enumerate(statuses)
+        ]  # fmt: skip
+        return TrackResult(frames=frames, summary=summarise(frames), method="default")
+
+    assert overlay_indices(result(["tracked"] * 5), 24) == list(range(5))
+    statuses = ["tracked"] * 100
+    statuses[37], statuses[61] = "lost", "reinitialised"
+    chosen = overlay_indices(result(statuses), 24)
+    assert len(chosen) <= 24 and chosen == sorted(set(chosen))
+    assert {0, 37, 61, 99} <= set(chosen)
