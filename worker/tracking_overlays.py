@@ -4,13 +4,15 @@
 from __future__ import annotations
 
 from collections.abc import Callable, Sequence
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
+from numpy.typing import NDArray
 
 from schemas.settings import get_settings
 from schemas.track import TrackRequest, TrackResult
-from worker.align.artifacts import overlay_grey
+from worker.align.artifacts import overlay
 from worker.align.renderers import get_renderer, lighting_spec, texture_level
 from worker.engine.camera import PinholeCamera
 from worker.engine.exceptions import EstimationCancelled
@@ -20,6 +22,13 @@ from worker.tracking import FrameFile
 
 #: Samples per pixel of an overlay's render (the overlay shows structure, not noise).
 OVERLAY_SPP = 4
+
+
+@dataclass(frozen=True)
+class _Render:
+    """What :func:`worker.align.artifacts.overlay` reads of a rendered view: its grey image."""
+
+    grey: NDArray[np.float32]
 
 
 def overlay_indices(result: TrackResult, max_frames: int) -> list[int]:
@@ -65,5 +74,5 @@ def overlays(
         R, t = np.asarray(pose.R, dtype=np.float64), np.asarray(pose.t, dtype=np.float64)
         linear = renderer.render(R, t, spp=OVERLAY_SPP)
         reference = decode_image(frames[k].data, settings.max_image_pixels)
-        out[f"overlay_{k}"] = overlay_grey(reference, to_grey(linear))
+        out[f"overlay_{k}"] = overlay(reference, _Render(to_grey(linear)))  # type: ignore[arg-type]
     return out

@@ -46,15 +46,10 @@ def _to_size(image: FloatImage, shape: tuple[int, ...]) -> FloatImage:
 
 def overlay(reference: FloatImage, view: RenderedView) -> bytes:
     """Reference in red, render in blue (RGB PNG), each stretched black to white."""
-    return overlay_grey(reference, view.grey)
-
-
-def overlay_grey(reference: FloatImage, render_grey: FloatImage) -> bytes:
-    """:func:`overlay` of a render given as its grey image (H, W) in linear units."""
     reference_grey = to_grey(reference)
     black = float(np.percentile(reference_grey, 50.0))  # the (noisy) sky fills most frames
     ref = _stretch(np.clip(reference_grey - black, 0.0, None))
-    ren = _stretch(_to_size(render_grey, ref.shape))
+    ren = _stretch(_to_size(view.grey, ref.shape))
     rgb = np.stack([ref, np.zeros_like(ref), ren], axis=-1)
     return encode_png(rgb)
 
