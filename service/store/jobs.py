@@ -37,7 +37,7 @@ from service.store.blobs.base import (
 )
 from service.store.keys import Keys
 from service.store.queues import Queues
-from service.store.records import JobRecord, text, utc_now
+from service.store.records import RESULT_Z_FIELD, JobRecord, pack_result, text, utc_now
 from service.store.transitions import Current, Transitions
 
 log = logging.getLogger(__name__)
@@ -267,11 +267,11 @@ class JobStore:
         and nothing changes); after the change the image blob goes, or, when the change was
         refused, the artifacts just written."""
         refs = self._put_artifacts(job_id, attempt, artifacts or {})
-        fields = {"status": status, "finished_at": utc_now()}
+        fields: dict[str, str | bytes] = {"status": status, "finished_at": utc_now()}
         if error is not None:
             fields["error"] = error.model_dump_json()
         if result_json is not None:
-            fields["result"] = result_json
+            fields[RESULT_Z_FIELD] = pack_result(result_json)
         if artifacts:
             fields["artifacts"] = json.dumps(list(artifacts))
             fields["artifact_blobs"] = json.dumps(refs)
