@@ -17,7 +17,7 @@ from conftest import RedisServer
 
 from service.store import JobStore, Keys
 from service.store.blobs import FileBlobStore
-from service.store.jobs import ActiveJobsLimitError
+from service.store.jobs import TRACEBACK_MAX_CHARS, ActiveJobsLimitError
 
 DB = 9
 THREADS = 24
@@ -136,3 +136,12 @@ def test_a_plain_result_of_an_older_deployment_still_reads(store: JobStore) -> N
     assert record is not None and record.result == '{"iterations": 4}'
     page, _cursor = store.list_page(10, None)
     assert [job.result for job in page if job.id == "e" * 32] == ['{"iterations": 4}']
+
+
+def test_a_failed_job_keeps_only_the_end_of_a_long_traceback(store: JobStore) -> None:
+    store.create("f" * 32, "demo-sat", "{}", 30, b"png", "fp", owner="bob", timeout_s=90)
+    tb = "Traceback (most recent call last):\n" + "  frame\n" * 5000 + "ValueError: boom\n"
+    assert store.finish("f" * 32, "failed", traceback=tb)
+    kept = store.r.hget(store.keys.job("f" * 32), "traceback")
+    assert kept is not None and len(kept) == TRACEBACK_MAX_CHARS
+    assert kept.endswith(b"ValueError: boom\n")

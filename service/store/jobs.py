@@ -44,6 +44,9 @@ log = logging.getLogger(__name__)
 
 #: Positions scanned at most to fill one listing page (expired jobs are skipped and pruned).
 LIST_SCAN_MAX = 1000
+#: Characters of a failed job's traceback kept in its hash (the end: the raising frames and the
+#: exception); a deep one would otherwise be most of the job's Redis memory.
+TRACEBACK_MAX_CHARS = 4000
 #: States in which a job counts against its owner's cap and may still change.
 ACTIVE_STATUSES = ("queued", "running")
 #: Reserve a place among the owner's active jobs (KEYS[1]) for job ARGV[1] unless ARGV[2] > 0
@@ -276,7 +279,8 @@ class JobStore:
             fields["artifacts"] = json.dumps(list(artifacts))
             fields["artifact_blobs"] = json.dumps(refs)
         if traceback:
-            fields["traceback"] = traceback  # for operators (redis-cli); never served
+            # for operators (redis-cli; an internal error's whole one is in the worker's log)
+            fields["traceback"] = traceback[-TRACEBACK_MAX_CHARS:]
 
         def guard(current: Current, pipe: Pipeline) -> bool:
             if current["status"] not in from_statuses:
