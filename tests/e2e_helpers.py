@@ -42,7 +42,7 @@ CUBE_OBJ = (
 #: Redis memory a finished 512² estimate may take (issue 17): its bytes are in the blob store.
 JOB_REDIS_BUDGET_BYTES = 20_000
 #: What grows with a job is its result's iteration history (~0.7 kB per iteration as JSON, kept
-#: zlib-compressed: ~0.26 kB); the rest of the hash (request, timestamps, artifact references,
+#: zlib-compressed: ~0.2 kB); the rest of the hash (request, timestamps, artifact references,
 #: the result's fixed part) is ~5 kB. A job's memory is held to BASE + PER_ITERATION × iterations
 #: (at most the budget), which a plain result would overshoot from the first iterations on.
 JOB_REDIS_BASE_BYTES = 5_500
