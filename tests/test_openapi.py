@@ -21,6 +21,9 @@ from service_api_helpers import (
     submit,
 )
 
+from schemas.camera import Camera
+from schemas.lighting import Lighting
+from schemas.options import EstimateOptions
 from service.main import create_app
 
 METHODS = {"get", "post", "put", "patch", "delete"}
@@ -82,6 +85,12 @@ def test_the_estimate_body_describes_the_request_part(document: dict[str, Any]) 
     assert create["properties"]["camera"] == {"$ref": "#/components/schemas/Camera"}
     assert create["properties"]["model_id"]["examples"] == ["demo-sat"]
     assert components["Camera"]["properties"]["fx"].get("description")
+    # every part of the request documents itself with an example that validates
+    models = {"Camera": Camera, "Lighting": Lighting, "EstimateOptions": EstimateOptions}
+    for name, model in models.items():
+        assert components[name]["examples"], name
+        for example in components[name]["examples"]:
+            model.model_validate(example)
     # no dangling references anywhere
     text = str(document)
     for ref in {part.split("'")[0] for part in text.split("#/components/schemas/")[1:]}:
