@@ -37,6 +37,7 @@ EngineErrorCode = Literal[
     "model_too_large",
     "render_failed",
     "empty_render",
+    "unlit_render",
     "too_few_features",
     "cancelled",
 ]

@@ -25,8 +25,10 @@ from worker.engine.posemath import axis_angle_to_matrix, increment_between, step
 COARSE_HANDOVER_STEP = 1e-2
 #: Silhouettes smaller than this (px²) are not aligned by moments.
 MIN_SILHOUETTE_PX = 50
-#: Fraction of the image border a silhouette may cover and still be aligned by moments.
-MAX_BORDER_FRACTION = 0.01
+#: Fraction of the image border a silhouette may cover and still be aligned by moments: a
+#: target grazing the frame keeps nearly all of its area (and the alignment score referees the
+#: move), one the frame cuts in half or that fills it does not.
+MAX_BORDER_FRACTION = 0.15
 #: Smallest rise of the dissimilarity 1 − NCC that counts as a worse render.
 SCORE_MARGIN = 0.002
 #: Iterations the coarse stage may take before handing over.
