@@ -10,6 +10,8 @@ gamma 2.2 and noise. The initial guess is the truth rotated and moved by the ban
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import numpy as np
 from numpy.typing import NDArray
 
@@ -17,6 +19,7 @@ from schemas.camera import Camera
 from schemas.estimate import EstimateRequest
 from schemas.lighting import Lighting
 from schemas.options import EstimateOptions
+from worker.bench.config import TERRAIN_BAND  # noqa: F401  (re-exported for the report)
 from worker.bench.raytrace import Physics
 from worker.bench.references import (
     AMBIENT,
@@ -50,6 +53,21 @@ TERRAIN_REFERENCE = ReferenceClass(
     noise_sigma=0.01,
 )
 UP = np.array([0.0, 1.0, 0.0])  # glTF: +y up
+#: The bench's terrain models: the demo terrain's generator (tuned on) and a held-out one.
+TERRAIN_MODELS = {
+    "terrain": "fractal relief and power-law craters (the demo terrain; tuned on)",
+    "terrain-ridged": "ridged multifractal relief and power-law craters (held out)",
+}
+
+
+def terrain_model_path(name: str, data_dir: Path) -> Path:
+    """The GLB of bench terrain model ``name`` under ``data_dir/models`` (written if missing)."""
+    from worker.demo.terrain import demo_terrain_path, write_demo_terrain
+
+    if name == "terrain":
+        return demo_terrain_path(data_dir)
+    path = Path(data_dir) / "models" / "bench-terrain-ridged-v1.glb"
+    return path if path.is_file() else write_demo_terrain(path, generator="ridged")
 
 
 def look_down_pose(
