@@ -136,3 +136,31 @@ def test_unlit_initial_pose_is_a_specific_error(terrain: LoadedModel) -> None:
     )
     with pytest.raises(UnlitRenderError, match="sun lights none"):
         estimate(terrain, ref, request)
+
+
+def test_suggested_request_looks_down_at_a_terrain(terrain: LoadedModel) -> None:
+    """GET /models/<id>/request.json's framing for a flat model: from above, lit, the frame
+    full of ground (the spacecraft framing would put the camera kilometres away, edge-on)."""
+    from schemas.models import ModelPublic
+    from service.pages import suggested_request
+    from worker.engine.posemath import pose_from_schema
+
+    meta = ModelPublic(
+        id="demo-terrain", name="t", vertices=terrain.n_vertices, faces=terrain.n_faces,
+        bounds=terrain.bounds.tolist(), textured=False, format="glb", size_bytes=1,
+        sha256="0" * 64, created_at="2026-01-01T00:00:00Z",
+    )  # fmt: skip
+    request = EstimateRequest.model_validate(
+        {k: v for k, v in suggested_request(meta, SIDE_PX, SIDE_PX).items() if k != "model_id"}
+    )
+    R, t = pose_from_schema(request.initial_pose)
+    C = -R.T @ t
+    assert 400.0 < C[1] < 800.0  # above the ground (+y up), at 0.3 of the 2 km side
+    tilt = np.degrees(np.arccos(R[2] @ np.array([0.0, -1.0, 0.0])))  # optical axis vs nadir
+    assert 20.0 < tilt < 30.0
+    sun = np.asarray(request.lighting.sun_direction)
+    cam = PinholeCamera.from_schema(request.camera)
+    renderer = Renderer(terrain, cam, LightingSpec(tuple(sun), 3.0, 0.02), spp=2)  # type: ignore[arg-type]
+    assert renderer.coverage(R, t, grid=16) == 1.0
+    img = renderer.render(R, t).mean(axis=2)
+    assert (img > 0.05).mean() > 0.7
