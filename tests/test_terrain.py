@@ -3,16 +3,19 @@ target half out of frame, meshes wound the wrong way, and an unlit initial pose.
 
 from __future__ import annotations
 
+import io
 from pathlib import Path
 
 import numpy as np
 import pytest
 import trimesh
+from PIL import Image
 
 from schemas.camera import Camera
 from schemas.estimate import EstimateRequest
 from schemas.lighting import Lighting
 from schemas.options import EstimateOptions
+from worker.align.artifacts import make_artifacts
 from worker.align.estimator import estimate
 from worker.bench.synth import CaseSpec, _initial_guess, pose_json
 from worker.bench.terrain import look_down_pose, make_terrain_case, sun_above_horizon
@@ -93,13 +96,18 @@ def _terrain_case(terrain: LoadedModel, seed: int) -> tuple[np.ndarray, Estimate
 
 def test_full_frame_terrain_estimate_converges(terrain: LoadedModel) -> None:
     ref, request = _terrain_case(terrain, seed=7)
-    result = estimate(terrain, ref, request).result
+    est = estimate(terrain, ref, request)
+    result = est.result
     assert result.errors is not None and result.initial_errors is not None
     assert result.initial_errors.rotation_deg > 2.0
     assert result.converged, result.reason
     assert result.errors.rotation_deg < 0.3
     assert result.errors.translation_pct_of_range < 0.3
     assert result.alignment_score > 0.9
+    # the overlay stretches the ground, not a sky there is none of: half the frame is not black
+    png = make_artifacts(result, est.reference, est.views)["overlay_final"]
+    rgb = np.asarray(Image.open(io.BytesIO(png)).convert("RGB"), dtype=np.float64) / 255.0
+    assert (rgb[..., 0] > 0.1).mean() > 0.8 and (rgb[..., 2] > 0.1).mean() > 0.8
 
 
 def test_target_half_out_of_frame(terrain: LoadedModel) -> None:
