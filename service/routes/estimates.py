@@ -14,7 +14,7 @@ from pydantic import ValidationError
 
 from schemas.jobs import EstimateCreate, EstimateList, EstimatePublic, JobStatus
 from schemas.models import MODEL_ID_PATTERN
-from schemas.names import DEMO_MODEL_ID
+from schemas.names import BUILTIN_MODEL_IDS
 from schemas.settings import Settings
 from service.auth import PrincipalDep
 from service.deps import AsyncRedisDep, JobStoreDep, ModelStoreDep, Multipart, SettingsDep
@@ -72,8 +72,9 @@ def _parse_request(part: str | UploadFile, max_bytes: int) -> EstimateCreate:
 
 
 def _check_model(models: ModelStore, model_id: str) -> None:
-    # demo-sat is accepted before any worker registered it: the worker that runs it will have
-    if model_id != DEMO_MODEL_ID and not models.exists(model_id):
+    # demo-sat and demo-terrain are accepted before any worker registered them: the worker that
+    # runs the job will have
+    if model_id not in BUILTIN_MODEL_IDS and not models.exists(model_id):
         raise field_error(
             422,
             ("body", "request", "model_id"),

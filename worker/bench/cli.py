@@ -86,7 +86,17 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "both (default: offset,truth)",
     )
     parser.add_argument(
-        "--models", type=_csv, help="demo, iss, aura, phobos or mesh paths (default: all)"
+        "--models",
+        type=_csv,
+        help="demo, iss, aura, phobos, terrain, terrain-ridged or mesh paths (default: the four "
+        "spacecraft)",
+    )
+    parser.add_argument(
+        "--terrain",
+        action="store_true",
+        help="add the terrain band: a cratered heightfield filling the frame (models terrain and "
+        "the held-out terrain-ridged), references ray traced with other physics, each estimate "
+        "also started at the truth",
     )
     parser.add_argument(
         "--methods",
