@@ -19,7 +19,6 @@ from schemas.camera import Camera
 from schemas.estimate import EstimateRequest
 from schemas.lighting import Lighting
 from schemas.options import EstimateOptions
-from worker.bench.config import TERRAIN_BAND  # noqa: F401  (re-exported for the report)
 from worker.bench.raytrace import Physics
 from worker.bench.references import (
     AMBIENT,
