@@ -11,6 +11,10 @@ from typing import Literal
 
 #: Id of the built-in demo satellite, registered by every worker when it starts.
 DEMO_MODEL_ID = "demo-sat"
+#: Id of the built-in demo terrain (a cratered heightfield, metres), registered beside it.
+DEMO_TERRAIN_ID = "demo-terrain"
+#: The built-in models: registered by every worker, accepted before one has, never deleted.
+BUILTIN_MODEL_IDS = (DEMO_MODEL_ID, DEMO_TERRAIN_ID)
 
 #: Model file extensions accepted, with the format (trimesh file type) each is read as.
 MODEL_FILE_TYPES = {".obj": "obj", ".ply": "ply", ".stl": "stl", ".glb": "glb", ".gltf": "gltf"}
@@ -37,6 +41,7 @@ EngineErrorCode = Literal[
     "model_too_large",
     "render_failed",
     "empty_render",
+    "unlit_render",
     "too_few_features",
     "cancelled",
 ]

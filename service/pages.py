@@ -3,7 +3,9 @@
 The framing is the "sensible default" of the submit form and the view of the model previews: a
 pinhole camera with a ``FIELD_OF_VIEW_DEG`` horizontal field of view, the model's bounding
 sphere centred on the optical axis and filling ``FILL_FRACTION`` of the shorter image side, seen
-obliquely from above with the model's +y up (the glTF convention), the sun behind the camera.
+obliquely from above with the model's +y up (the glTF convention), the sun behind the camera. A
+terrain (a flat bounding box: a DEM patch) is looked down on from a height of a fraction of its
+side instead, tilted from the nadir, with the sun above its ground.
 Plain-Python math: the API process carries no numpy-heavy code paths of its own.
 """
 
@@ -29,6 +31,17 @@ FILL_FRACTION = 0.8
 #: a tilt about the camera's x axis so that the camera looks slightly down on the model.
 VIEW_YAW_DEG = 35.0
 VIEW_TILT_DEG = -20.0
+#: A model whose extent along its thinnest axis is below TERRAIN_FLATNESS × the smaller of the
+#: other two is a terrain (a DEM patch): it is seen from above, not framed whole.
+TERRAIN_FLATNESS = 0.25
+#: The terrain view: camera height above the patch centre as a fraction of the patch's smaller
+#: side, tilt from the nadir (deg), and the sun's elevation above the ground and azimuth (deg).
+TERRAIN_ALTITUDE_FRACTION = 0.3
+TERRAIN_TILT_DEG = 25.0
+TERRAIN_SUN_ELEVATION_DEG = 35.0
+TERRAIN_SUN_AZIMUTH_DEG = 120.0
+#: Per thin ("up") axis of a terrain: the rotation taking it to the camera's −z (looking down).
+_LOOK_DOWN = {0: ((0.0, 1.0, 0.0), 90.0), 1: ((1.0, 0.0, 0.0), -90.0), 2: ((1.0, 0.0, 0.0), 180.0)}
 #: Side of a model preview, px, and its samples per pixel.
 PREVIEW_SIDE_PX = 256
 PREVIEW_SPP = 16
@@ -85,16 +98,54 @@ def suggested_pose(bounds: list[list[float]], camera: dict[str, float]) -> dict[
     return {"t": [round(c, 6) for c in t], "quaternion": [round(c, 7) for c in q]}
 
 
+def terrain_up_axis(bounds: list[list[float]]) -> int | None:
+    """The thin axis of a terrain-like (flat) bounding box, or None for any other model."""
+    extent = [hi - lo for lo, hi in zip(bounds[0], bounds[1], strict=True)]
+    up = min(range(3), key=lambda k: extent[k])
+    others = [extent[k] for k in range(3) if k != up]
+    return up if extent[up] < TERRAIN_FLATNESS * min(others) else None
+
+
+def terrain_view(bounds: list[list[float]], up: int) -> tuple[dict[str, list[float]], Vector3]:
+    """Pose and sun (camera frame) looking down at a terrain's centre from
+    TERRAIN_ALTITUDE_FRACTION of its smaller side, tilted TERRAIN_TILT_DEG from the nadir.
+
+    The attitude turns the up axis to the camera's −z, then tilts about the camera's x axis;
+    the patch centre is put on the optical axis at the slant range h / cos(tilt).
+    """
+    axis, angle = _LOOK_DOWN[up]
+    q = multiply(axis_quaternion((1.0, 0.0, 0.0), TERRAIN_TILT_DEG), axis_quaternion(axis, angle))
+    q = q if q[0] >= 0.0 else (-q[0], -q[1], -q[2], -q[3])
+    centre, _ = bounding_sphere(bounds)
+    side = min(hi - lo for k, (lo, hi) in enumerate(zip(*bounds, strict=True)) if k != up)
+    d = TERRAIN_ALTITUDE_FRACTION * side / math.cos(math.radians(TERRAIN_TILT_DEG))
+    Rc = rotate(q, centre)
+    t = [-Rc[0], -Rc[1], d - Rc[2]]
+    e, a = math.radians(TERRAIN_SUN_ELEVATION_DEG), math.radians(TERRAIN_SUN_AZIMUTH_DEG)
+    h1, h2 = [k for k in range(3) if k != up]
+    sun = [0.0, 0.0, 0.0]
+    sun[up], sun[h1], sun[h2] = math.sin(e), math.cos(e) * math.cos(a), math.cos(e) * math.sin(a)
+    pose = {"t": [round(c, 6) for c in t], "quaternion": [round(c, 7) for c in q]}
+    return pose, rotate(q, (sun[0], sun[1], sun[2]))
+
+
 def suggested_request(model: ModelPublic, width: int, height: int) -> dict[str, Any]:
-    """The submit form's defaults for ``model``: an EstimateCreate document (validated)."""
+    """The submit form's defaults for ``model``: an EstimateCreate document (validated). A
+    terrain (a flat bounding box) is looked down on obliquely, lit by a sun above its ground."""
     camera = suggested_camera(width, height)
     lighting = Lighting()
+    pose, sun = suggested_pose(model.bounds, camera), lighting.sun_direction
+    up = terrain_up_axis(model.bounds)
+    if up is not None:
+        pose, sun_camera = terrain_view(model.bounds, up)
+        norm = math.sqrt(sum(c * c for c in sun_camera))
+        sun = [round(c / norm, 7) for c in sun_camera]
     request = {
         "model_id": model.id,
         "camera": camera,
-        "initial_pose": suggested_pose(model.bounds, camera),
+        "initial_pose": pose,
         "lighting": {
-            "sun_direction": lighting.sun_direction,
+            "sun_direction": sun,
             "sun_irradiance": lighting.sun_irradiance,
             "ambient": lighting.ambient,
         },

@@ -13,7 +13,7 @@ from fastapi import Header, Request, Response, UploadFile
 from pydantic import BaseModel, ValidationError
 
 from schemas.camera import Camera
-from schemas.names import DEMO_MODEL_ID
+from schemas.names import BUILTIN_MODEL_IDS
 from schemas.settings import Settings
 from service.errors import ApiError, echo, field_error, not_found, validation_failed
 from service.store import ActiveJobsLimitError, JobRecord, JobStore, ModelStore, Reaper
@@ -77,8 +77,9 @@ def parse_request(
 
 
 def check_model(models: ModelStore, model_id: str) -> None:
-    # demo-sat is accepted before any worker registered it: the worker that runs it will have
-    if model_id != DEMO_MODEL_ID and not models.exists(model_id):
+    # demo-sat and demo-terrain are accepted before any worker registered them: the worker that
+    # runs the job will have
+    if model_id not in BUILTIN_MODEL_IDS and not models.exists(model_id):
         raise field_error(
             422,
             ("body", "request", "model_id"),

@@ -75,3 +75,9 @@ def test_a_score_is_clearly_worse_only_beyond_its_jitter() -> None:
     best = 0.99  # dissimilarity 0.01
     assert not _clearly_worse(1.0 - 0.01 * 1.5 - SCORE_MARGIN + 1e-6, best)
     assert _clearly_worse(1.0 - 0.01 * 1.5 - SCORE_MARGIN - 1e-6, best)
+
+
+def test_moment_alignment_skips_a_silhouette_the_frame_cuts() -> None:
+    session = make_session(np.array([1.6, -0.3, 10.0]))  # the disk's centre at the right edge
+    assert not run_moment_alignment(session) and session.history == []
+    np.testing.assert_array_equal(session.t, [1.6, -0.3, 10.0])

@@ -17,7 +17,7 @@ from schemas.models import (
     ModelList,
     ModelPublic,
 )
-from schemas.names import DEMO_MODEL_ID
+from schemas.names import BUILTIN_MODEL_IDS
 from service.auth import PrincipalDep
 from service.deps import ModelStoreDep, Multipart, SettingsDep
 from service.errors import ApiError, field_error, not_found
@@ -30,7 +30,7 @@ _ID = re.compile(MODEL_ID_PATTERN)
 
 def _get_or_404(models: ModelStoreDep, model_id: str) -> ModelPublic:
     model = models.get(model_id) if _ID.match(model_id) else None
-    if model is None and model_id == DEMO_MODEL_ID:
+    if model is None and model_id in BUILTIN_MODEL_IDS:
         msg = f"model '{model_id}' is not registered yet: the first worker to start registers it"
         raise ApiError(404, detail=msg, code="not_found")
     if model is None:

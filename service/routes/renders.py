@@ -9,7 +9,7 @@ import uuid
 from fastapi import APIRouter, Response
 
 from schemas.jobs import RenderCreate
-from schemas.names import DEMO_MODEL_ID, JobErrorCode
+from schemas.names import BUILTIN_MODEL_IDS, JobErrorCode
 from service.deps import KeysDep, ModelStoreDep, QueuesDep, RedisDep, SettingsDep
 from service.errors import ApiError, field_error
 
@@ -51,7 +51,7 @@ def create_render(
     keys: KeysDep,
     settings: SettingsDep,
 ) -> Response:
-    if body.model_id != DEMO_MODEL_ID and not models.exists(body.model_id):
+    if body.model_id not in BUILTIN_MODEL_IDS and not models.exists(body.model_id):
         msg = f"no model '{body.model_id}' is registered (see GET /v1/models)"
         raise field_error(422, ("body", "model_id"), msg, "model_not_found")
     if queues.live_workers() == 0:

@@ -81,6 +81,9 @@ export const ERROR_HINTS = {
   empty_render:
     "The model is not visible at the initial pose: check t (the target must be in front of " +
     "the camera, within the field of view) and the camera.",
+  unlit_render:
+    "The model is in view at the initial pose but the sun lights none of it: check " +
+    "sun_direction (towards the sun, camera frame) and the model's orientation.",
   too_few_features:
     "The render at the initial pose and the image share too few features: bring the initial " +
     "pose closer, check the lighting (sun direction) and the camera.",

@@ -40,13 +40,16 @@ from service.store.blobs.base import (
 )
 from service.store.keys import Keys
 from service.store.queues import Queues
-from service.store.records import JobRecord, text, utc_now
+from service.store.records import RESULT_Z_FIELD, JobRecord, pack_result, text, utc_now
 from service.store.transitions import Current, Transitions
 
 log = logging.getLogger(__name__)
 
 #: Positions scanned at most to fill one listing page (expired jobs are skipped and pruned).
 LIST_SCAN_MAX = 1000
+#: Characters of a failed job's traceback kept in its hash (the end: the raising frames and the
+#: exception); a deep one would otherwise be most of the job's Redis memory.
+TRACEBACK_MAX_CHARS = 4000
 #: States in which a job counts against its owner's cap and may still change.
 ACTIVE_STATUSES = ("queued", "running")
 #: Reserve a place among the owner's active jobs (KEYS[1]) for job ARGV[1] unless ARGV[2] > 0
@@ -312,16 +315,17 @@ class JobStore:
         and nothing changes); after the change the image blob goes, or, when the change was
         refused, the artifacts just written."""
         refs = self._put_artifacts(job_id, attempt, artifacts or {})
-        fields = {"status": status, "finished_at": utc_now()}
+        fields: dict[str, str | bytes] = {"status": status, "finished_at": utc_now()}
         if error is not None:
             fields["error"] = error.model_dump_json()
         if result_json is not None:
-            fields["result"] = result_json
+            fields[RESULT_Z_FIELD] = pack_result(result_json)
         if artifacts:
             fields["artifacts"] = json.dumps(list(artifacts))
             fields["artifact_blobs"] = json.dumps(refs)
         if traceback:
-            fields["traceback"] = traceback  # for operators (redis-cli); never served
+            # for operators (redis-cli; an internal error's whole one is in the worker's log)
+            fields["traceback"] = traceback[-TRACEBACK_MAX_CHARS:]
 
         def guard(current: Current, pipe: Pipeline) -> bool:
             if current["status"] not in from_statuses:

@@ -19,7 +19,7 @@ import time
 import redis
 
 from schemas.models import ModelPublic
-from schemas.names import DEMO_MODEL_ID
+from schemas.names import BUILTIN_MODEL_IDS
 from service.store.access import Principal
 from service.store.blobs.base import BlobStore, BlobStoreError, model_file_name
 from service.store.keys import Keys
@@ -89,14 +89,14 @@ class ModelStore:
             assert self.viewer is not None
             index = self.keys.owner_models(self.viewer.name)
         ids = [m.decode() for m in self.r.zrevrange(index, 0, -1)]  # type: ignore[union-attr]
-        if not self._sees_all() and DEMO_MODEL_ID not in ids:
-            ids.append(DEMO_MODEL_ID)
+        if not self._sees_all():
+            ids += [m for m in BUILTIN_MODEL_IDS if m not in ids]
         models, gone = [], []
         for model_id in ids:
             model = self.get(model_id)
             if model is not None:
                 models.append(model)
-            elif model_id != DEMO_MODEL_ID:
+            elif model_id not in BUILTIN_MODEL_IDS:
                 gone.append(model_id)
         if gone:
             self.r.zrem(index, *gone)

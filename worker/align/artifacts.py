@@ -32,6 +32,10 @@ ARTIFACT_NAMES = (
 )
 
 
+#: Pixels above this fraction of a render's brightest show the target (the rest is sky).
+SKY_LEVEL = 0.02
+
+
 def _stretch(grey: FloatImage) -> FloatImage:
     top = float(np.percentile(grey, 99.8)) or 1.0
     return np.clip(grey / top, 0.0, 1.0)
@@ -44,12 +48,25 @@ def _to_size(image: FloatImage, shape: tuple[int, ...]) -> FloatImage:
     return cv2.resize(image, (shape[1], shape[0]), interpolation=cv2.INTER_LINEAR)
 
 
+def shows_sky(render_grey: FloatImage) -> bool:
+    """Whether most of a render is background (an isolated target on the sky), rather than the
+    target filling the frame (terrain, docking range)."""
+    return float(np.mean(render_grey > SKY_LEVEL * float(render_grey.max()))) < 0.5
+
+
 def overlay(reference: FloatImage, view: RenderedView) -> bytes:
-    """Reference in red, render in blue (RGB PNG), each stretched black to white."""
+    """Reference in red, render in blue (RGB PNG), each stretched black to white.
+
+    The reference's black is its median when the render shows mostly sky (the noisy sky then
+    turns black), else its darkest percentile: a frame full of ground has no sky to take it
+    from, and its median would crush half the image to black."""
     reference_grey = to_grey(reference)
-    black = float(np.percentile(reference_grey, 50.0))  # the (noisy) sky fills most frames
+    render_grey = _to_size(view.grey, reference_grey.shape)
+    sky = shows_sky(render_grey)
+    black = float(np.percentile(reference_grey, 50.0 if sky else 1.0))
     ref = _stretch(np.clip(reference_grey - black, 0.0, None))
-    ren = _stretch(_to_size(view.grey, ref.shape))
+    floor = 0.0 if sky else float(np.percentile(render_grey, 1.0))
+    ren = _stretch(np.clip(render_grey - floor, 0.0, None))
     rgb = np.stack([ref, np.zeros_like(ref), ren], axis=-1)
     return encode_png(rgb)
 

@@ -25,6 +25,10 @@ from worker.engine.posemath import axis_angle_to_matrix, increment_between, step
 COARSE_HANDOVER_STEP = 1e-2
 #: Silhouettes smaller than this (px²) are not aligned by moments.
 MIN_SILHOUETTE_PX = 50
+#: Fraction of the image border a silhouette may cover and still be aligned by moments: a
+#: target grazing the frame keeps nearly all of its area (and the alignment score referees the
+#: move), one the frame cuts in half or that fills it does not.
+MAX_BORDER_FRACTION = 0.15
 #: Smallest rise of the dissimilarity 1 − NCC that counts as a worse render.
 SCORE_MARGIN = 0.002
 #: Iterations the coarse stage may take before handing over.
@@ -41,6 +45,13 @@ def silhouette_moments(grey: FloatImage, level: float) -> tuple[float, NDArray[n
     return area, np.array([xs.mean(), ys.mean()])
 
 
+def cut_by_frame(mask: NDArray[np.bool_]) -> bool:
+    """Whether a silhouette mask reaches the image border (more than MAX_BORDER_FRACTION of
+    the border pixels): the target fills the frame or extends past its edges."""
+    border = np.concatenate([mask[0], mask[-1], mask[1:-1, 0], mask[1:-1, -1]])
+    return bool(border.mean() > MAX_BORDER_FRACTION)
+
+
 def run_moment_alignment(session: Session) -> bool:
     """Move the target so its lit silhouette has the reference's area and centroid.
 
@@ -51,6 +62,8 @@ def run_moment_alignment(session: Session) -> bool:
     """
     view = session.current_view()
     ref = session.ref_grey
+    if cut_by_frame(view.grey > 0.05 * float(view.grey.max())):
+        return False  # area and centroid of a silhouette the frame cuts say nothing of the pose
     sky = float(np.median(ref))
     noise = 1.4826 * float(np.median(np.abs(ref - sky)))
     level_ref = sky + max(6.0 * noise, 0.05 * (float(np.percentile(ref, 99.9)) - sky))

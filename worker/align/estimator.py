@@ -23,6 +23,7 @@ from worker.align.coarse import (
     run_moment_alignment,
     run_pnp_stage,
 )
+from worker.align.learning import apparent_radius_px
 from worker.align.lm import covariance
 from worker.align.pyramid import LevelPlan, plan_levels
 from worker.align.refine import Outcome, run_lm_stage
@@ -30,12 +31,13 @@ from worker.align.renderers import get_renderer, lighting_spec, texture_level
 from worker.align.session import CancelCheck, ProgressCallback, RenderedView, Session
 from worker.align.shading import RendererFor, choose_shading
 from worker.engine.camera import PinholeCamera
-from worker.engine.exceptions import EmptyRenderError, TooFewFeaturesError
+from worker.engine.exceptions import EmptyRenderError, TooFewFeaturesError, UnlitRenderError
 from worker.engine.images import FloatImage, check_size, to_grey
 from worker.engine.meshes import LoadedModel
 from worker.engine.metrics import rotation_error_deg, speed_score, translation_error
 from worker.engine.photometry import alignment_score
 from worker.engine.posemath import pose_from_schema, pose_to_schema
+from worker.engine.renderer import LightingSpec
 
 #: Refinement passes added after one that ended 'slow' (see worker.align.refine).
 MAX_EXTRA_PASSES = 2
@@ -48,6 +50,10 @@ MIN_CONVERGED_SCORE = 0.7
 #: term is (s² − 1)× the statistical covariance. Chosen on the robustness suite's tuned
 #: classes (errors a median 2.1× the statistical σ), checked on the held-out ones.
 MISMATCH_SCALE = 2.5
+#: A render whose brightest pixels (99.9th percentile, linear) are at most UNLIT_FACTOR × the
+#: ambient radiance plus UNLIT_FLOOR is unlit: the sun reaches nothing in view.
+UNLIT_FACTOR = 1.5
+UNLIT_FLOOR = 1e-4
 CONVERGED_REASONS = {"step_below_epsilon", "cost_converged", "pnp_converged"}
 
 
@@ -114,9 +120,11 @@ def estimate(
 
 
 def target_px(model: LoadedModel, camera: PinholeCamera, R: np.ndarray, t: np.ndarray) -> float:
-    """Apparent diameter of the model's bounding sphere at pose (R, t), full-resolution px."""
+    """Apparent diameter of the model's bounding sphere at pose (R, t), full-resolution px (at
+    most the image diagonal: a target overfilling the frame is seen only as far as the frame)."""
     d = float(np.linalg.norm(R @ model.centre + t))
-    return 2.0 * 0.5 * (camera.fx + camera.fy) * model.radius / max(d, 1e-12)
+    f = 0.5 * (camera.fx + camera.fy)
+    return 2.0 * apparent_radius_px(f, model.radius, d, camera.width, camera.height)
 
 
 def _run_pipeline(session: Session, renderer_for: RendererFor, plan: LevelPlan) -> StopReason:
@@ -125,6 +133,7 @@ def _run_pipeline(session: Session, renderer_for: RendererFor, plan: LevelPlan) 
     pnp_reason: StopReason | None = None
     if opts.refine_features != "none":
         session.set_level(plan.coarse)
+    check_lit(session.current_view(), session.renderer.lighting)
     if opts.coarse == "pnp":
         run_moment_alignment(session)
         alone = opts.refine_features == "none"
@@ -142,6 +151,20 @@ def _run_pipeline(session: Session, renderer_for: RendererFor, plan: LevelPlan) 
     if opts.refine_features == "klt" and not coarse_ok:
         run_lm_stage(session, "matches", "coarse", handover_step=COARSE_HANDOVER_STEP)
     return _refine(session, renderer_for, plan)
+
+
+def check_lit(view: RenderedView, lighting: LightingSpec) -> None:
+    """Raise UnlitRenderError when nothing in the render at the initial pose is brighter than a
+    white surface lit by the ambient light alone (UNLIT_FACTOR of it): the sun lights nothing
+    that is seen, and no feature can be found."""
+    grey = view.linear[..., :3].mean(axis=2)
+    top = float(np.percentile(grey, 99.9))
+    if top <= UNLIT_FACTOR * lighting.ambient + UNLIT_FLOOR:
+        raise UnlitRenderError(
+            "the model is in view at the initial pose but the sun lights none of it (brightest "
+            f"pixels {top:.4f} of the sun's scale, ambient {lighting.ambient:g}): check "
+            "sun_direction (towards the sun, camera frame) and the model's orientation"
+        )
 
 
 def _refine(session: Session, renderer_for: RendererFor, plan: LevelPlan) -> StopReason:

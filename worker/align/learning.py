@@ -33,18 +33,33 @@ class LearnedJacobian:
     renders: int
 
 
+def apparent_radius_px(
+    f_px: float, radius: float, distance: float, width_px: int, height_px: int
+) -> float:
+    """Apparent radius of the target, f·r/d px, but at most the image's half diagonal.
+
+    A rotation θ about the target's centre moves a point at distance ρ from it by about f·θ·ρ/d
+    px; only what is in view moves the features, so when the target overfills the frame (the
+    camera inside its bounding sphere: terrain, docking range) ρ is bounded by the footprint of
+    the field of view, not by the model's radius (which would shrink the perturbations until
+    the features barely move).
+    """
+    return min(f_px * radius / max(distance, 1e-12), 0.5 * float(np.hypot(width_px, height_px)))
+
+
 def perturbation_sizes(session: Session, shrink: float = 1.0) -> tuple[float, Array]:
     """Rotation cap (rad) and translation half-widths (3,) of the perturbations.
 
     By default sized so that each moves the image by about ``perturbation_px``: the target's
-    apparent radius s = f·r/d px turns a rotation θ into ≈ s·θ px, a lateral shift δ into f·δ/d
-    and a shift in depth δz into s·δz/d.
+    apparent radius s = f·r/d px (:func:`apparent_radius_px`) turns a rotation θ into ≈ s·θ px,
+    a lateral shift δ into f·δ/d and a shift in depth δz into s·δz/d.
     """
     opts = session.options
     model = session.renderer.model
     d = float(np.linalg.norm(session.R @ model.centre + session.t))
-    f = 0.5 * (session.camera.fx + session.camera.fy)
-    s_px = max(f * model.radius / d, 1.0)
+    cam = session.camera
+    f = 0.5 * (cam.fx + cam.fy)
+    s_px = max(apparent_radius_px(f, model.radius, d, cam.width, cam.height), 1.0)
     px = opts.perturbation_px * shrink
     if opts.perturbation_rot_deg is not None:
         angle = np.radians(opts.perturbation_rot_deg) * shrink

@@ -29,6 +29,7 @@ from schemas.options import EstimateOptions
 from worker.bench.costs import full_render_seconds, peak_memory_mb, reset_peak_memory
 from worker.bench.records import failure, outcome
 from worker.bench.synth import Case, CaseSpec, make_case
+from worker.bench.terrain import TERRAIN_MODELS, make_terrain_case, terrain_model_path
 from worker.engine.meshes import LoadedModel
 from worker.engine.metrics import rotation_error_deg, speed_score, translation_error
 from worker.engine.posemath import pose_from_schema
@@ -120,12 +121,16 @@ def resolve_models(
 ) -> tuple[list[tuple[str, Path]], list[str]]:
     """Paths of the bench models, and a message per model skipped because its file is absent.
 
-    ``demo`` is the procedural satellite (written under ``data_dir`` on first use), ``iss``,
+    ``demo`` is the procedural satellite and ``terrain``, ``terrain-ridged`` the procedural
+    terrains (written under ``data_dir`` on first use), ``iss``,
     ``aura``, ``phobos`` are looked up in ``models_dir``; any other name is a mesh file path.
     """
     found: list[tuple[str, Path]] = []
     skipped: list[str] = []
     for name in names:
+        if name in TERRAIN_MODELS:
+            found.append((name, terrain_model_path(name, data_dir).resolve()))
+            continue
         if name == DEMO_MODEL:
             from worker.demo.satellite import demo_satellite_path
 
@@ -208,6 +213,8 @@ def build_case(task: CaseTask, model: LoadedModel) -> tuple[Case, int]:
         task.band_lo, task.band, task.offsets, np.random.default_rng(offset_seed)
     )
     camera, spec = bench_camera(task.width_px, task.height_px), CaseSpec(rot_deg, frac)
+    if task.reference == "terrain":
+        return make_terrain_case(model, camera, spec, ref_seed), est_seed
     return make_case(model, camera, spec, ref_seed, reference=task.reference), est_seed
 
 

@@ -17,6 +17,10 @@ if TYPE_CHECKING:
     from worker.bench.cases import CaseTask
 
 ALL_MODELS = ["demo", "iss", "aura", "phobos"]
+#: The terrain band's models (worker.bench.terrain): the demo terrain, a held-out generator.
+TERRAIN_MODEL_NAMES = ("terrain", "terrain-ridged")
+#: Offsets of the terrain band: (lo, hi] degrees and percent of the range.
+TERRAIN_BAND = (2.0, 6.0)
 #: Suite presets; an explicit --models/--cases/--size overrides the preset's value.
 SUITES: dict[str, dict[str, Any]] = {
     "quick": {"models": ["demo"], "cases": 1, "size_px": 160},
@@ -42,7 +46,7 @@ def make_config(args: argparse.Namespace) -> dict[str, Any]:
     cases = ROBUSTNESS_CASES if robust and name == "small" else preset["cases"]
     config = {
         "suite": f"robustness-{name}" if robust else name,
-        "models": args.models or preset["models"],
+        "models": _models(args.models or preset["models"], getattr(args, "terrain", False)),
         "methods": [parse_method(m).label for m in args.methods],
         "bands": [ROBUSTNESS_BAND[1]] if robust else args.bands,
         "references": _references(args.references) if robust else ["standard"],
@@ -66,6 +70,11 @@ def make_config(args: argparse.Namespace) -> dict[str, Any]:
     if not 0 <= config["seed"] < 2**32:
         raise BenchSetupError("seed must be in 0..2³²−1")
     return config
+
+
+def _models(names: list[str], terrain: bool) -> list[str]:
+    """The suite's models, with the terrain band's appended when asked for (``--terrain``)."""
+    return names + [m for m in TERRAIN_MODEL_NAMES if terrain and m not in names]
 
 
 def _references(names: list[str] | None) -> list[str]:
@@ -92,13 +101,20 @@ def make_tasks(
     config: dict[str, Any], models: list[tuple[str, Path]], output_dir: Path
 ) -> list[CaseTask]:
     """One task per (model, band, case index), in that order; for the robustness suite one per
-    (model, reference class, case index), each run from its guess and from the truth."""
+    (model, reference class, case index), each run from its guess and from the truth; for a
+    terrain model one per case index in the terrain band, from its guess and from the truth."""
     from worker.bench.cases import CaseTask, band_edges, parse_method
 
     methods = [parse_method(m) for m in config["methods"]]
     robust = config["references"] != ["standard"]
     bands = [ROBUSTNESS_BAND] if robust else band_edges(config["bands"])
     starts = tuple(config["starts"])
+    terrain = {"references": ["terrain"], "bands": [TERRAIN_BAND], "starts": ("offset", "truth")}
+    spacecraft = {"references": config["references"], "bands": bands, "starts": starts}
+
+    def plan(name: str) -> dict[str, Any]:
+        return terrain if name in TERRAIN_MODEL_NAMES else spacecraft
+
     return [
         CaseTask(
             model=name,
@@ -115,12 +131,12 @@ def make_tasks(
             output_dir=str(output_dir),
             save_cases=config["save_cases"],
             reference=reference,
-            starts=starts,
+            starts=plan(name)["starts"],
         )
         for w, h in config["sizes"]
         for name, path in models
-        for reference in config["references"]
-        for lo, hi in bands
+        for reference in plan(name)["references"]
+        for lo, hi in plan(name)["bands"]
         for i in range(config["cases"])
     ]
 

@@ -129,7 +129,7 @@ def print_summary(summary: dict[str, Any], output_dir: Path) -> None:
     def num(v: float | None) -> str:
         return "—" if v is None else f"{v:.3g}"
 
-    for group in summary["by_reference"]:
+    for group in summary["by_reference"] + summary.get("by_terrain", []):
         for method, s in group["methods"].items():
             if not s["cases"] and not s["drift_cases"]:
                 continue

@@ -167,11 +167,13 @@ def group_summary(
 
 def summarize(records: list[Record], methods: list[str]) -> dict[str, Any]:
     """Summary per band, per model and band, and over everything (the standard references);
-    per reference class and per class group (tuned, held out) for the robustness suite."""
+    per reference class and per class group (tuned, held out) for the robustness suite; per
+    terrain model for the terrain band."""
     from worker.bench.references import REFERENCE_CLASSES
 
     standard = [r for r in records if r.get("reference", "standard") == "standard"]
-    classes = [r for r in records if r.get("reference", "standard") != "standard"]
+    classes = [r for r in records if r.get("reference", "standard") not in ("standard", "terrain")]
+    terrain = [r for r in records if r.get("reference") == "terrain"]
 
     def kind(r: Record) -> str:
         return "tuned" if REFERENCE_CLASSES[r["reference"]].tuned else "held out"
@@ -185,6 +187,7 @@ def summarize(records: list[Record], methods: list[str]) -> dict[str, Any]:
         "overall": group_summary(standard, methods, lambda r: "all"),
         "by_reference": group_summary(classes, methods, lambda r: r["reference"]),
         "by_reference_kind": group_summary(classes, methods, kind),
+        "by_terrain": group_summary(terrain, methods, lambda r: r["model"]),
         "by_model_reference": group_summary(
             classes, methods, lambda r: f"{r['model']} {r['reference']}"
         ),

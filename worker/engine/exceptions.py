@@ -67,6 +67,13 @@ class EmptyRenderError(ProxposeError):
     code = "empty_render"
 
 
+class UnlitRenderError(ProxposeError):
+    """The target is in view at the initial pose, but the sun lights none of what is seen
+    (the render is black but for the ambient light: sun direction, or faces wound inwards)."""
+
+    code = "unlit_render"
+
+
 class TooFewFeaturesError(ProxposeError):
     """Too few features matched or tracked to constrain the pose."""
 

@@ -26,6 +26,9 @@ SCORE_SMOOTH_PX = 1.5
 #: Tone-curve fit: quantile bins and the smoothing applied before comparing pixels, px.
 TONE_BINS = 48
 TONE_SMOOTH_PX = 1.5
+#: Dark pixels the tone curve needs to anchor its foot on them (a target filling the frame
+#: with no sky or shadow leaves none: the curve is then fitted on the lit levels alone).
+MIN_SKY_PX = 50
 #: Local contrast normalisation window (px) and the 8-bit gain of one local σ.
 LCN_SIGMA_PX = 4.0
 LCN_GAIN = 40.0
@@ -74,12 +77,16 @@ def fit_tone_curve(
     av, bv = a[flat].astype(np.float64), b[flat].astype(np.float64)
     edges = np.unique(np.quantile(bv, np.linspace(0.0, 1.0, bins + 1)))
     idx = np.clip(np.searchsorted(edges, bv, side="right") - 1, 0, len(edges) - 2)
-    ref_level, render_level = [float(np.median(a[~lit]))], [0.0]  # the dark sky
+    ref_level, render_level = [], []
+    if (~lit).sum() >= MIN_SKY_PX:  # the dark sky (or shadow) anchors the curve's foot
+        ref_level, render_level = [float(np.median(a[~lit]))], [0.0]
     for k in range(len(edges) - 1):
         sel = idx == k
         if sel.sum() >= 10:
             ref_level.append(float(np.median(av[sel])))
             render_level.append(float(np.median(bv[sel])))
+    if len(ref_level) < 2:
+        return np.array([0.0, 1.0]), np.array([0.0, 1.0])
     x = np.maximum.accumulate(np.asarray(ref_level))
     x = x + 1e-6 * np.arange(len(x))  # strictly increasing for interpolation
     return x, np.maximum.accumulate(np.asarray(render_level))

@@ -344,7 +344,7 @@ def prefiltered_texture(part: MeshPart, px_per_unit: float | None) -> NDArray[np
 def _mesh(
     part: MeshPart, name: str, px_per_unit: float | None = None, shading: str = "file"
 ) -> object:
-    """A Mitsuba mesh with a diffuse BSDF (texture, vertex colours or a constant albedo)."""
+    """A Mitsuba mesh with a two-sided diffuse BSDF (texture, vertex colours or an albedo)."""
     import mitsuba as mi
 
     if part.texture is not None:
@@ -359,7 +359,10 @@ def _mesh(
     else:
         reflectance = {"type": "rgb", "value": list(part.albedo)}
     props = mi.Properties()
-    props["bsdf"] = mi.load_dict({"type": "diffuse", "reflectance": reflectance})
+    # Two-sided: a face wound the other way (normals into the ground), an inconsistently wound
+    # mesh or an open surface seen from behind reflects like its front instead of rendering black.
+    diffuse = {"type": "diffuse", "reflectance": reflectance}
+    props["bsdf"] = mi.load_dict({"type": "twosided", "bsdf": diffuse})
     has_normals = part.normals is not None and shading == "file"
     has_uv = part.uvs is not None and part.texture is not None
     mesh = mi.Mesh(
