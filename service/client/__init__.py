@@ -15,6 +15,9 @@ It needs nothing but httpx and the :mod:`schemas` models (no FastAPI, numpy or M
 (:class:`~schemas.jobs.EstimatePublic` has ``.id``, ``.status``, ``.result``); errors as
 :class:`ApiError` subclasses carrying the problem details (:class:`~schemas.problem.Problem`).
 
+Tracks (``/v1/tracks``) have the same calls: ``submit_track(frames, request)``, ``get_track``,
+``track_events``, ``wait_track``, ``cancel_track``, ``track_artifact`` and ``track_json``.
+
 Retries: a dropped connection, a 503 or a 429 with ``Retry-After`` is retried (up to
 ``retries`` times, waiting as the service says, at most ``max_retry_wait_s`` a time). A
 submission is retried only with an Idempotency-Key, so one is generated when none is given: a
@@ -24,9 +27,7 @@ retried submission returns the job the first attempt created instead of a second
 from __future__ import annotations
 
 import json
-import time
-import uuid
-from collections.abc import Iterator, Mapping
+from collections.abc import Iterator, Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -34,7 +35,6 @@ import httpx
 from pydantic import BaseModel
 
 from schemas.jobs import (
-    TERMINAL_STATUSES,
     EstimateCreate,
     EstimateList,
     EstimatePublic,
@@ -43,7 +43,9 @@ from schemas.jobs import (
     RenderCreate,
 )
 from schemas.models import ModelList, ModelPublic
-from schemas.version import __version__
+from schemas.track import TrackResult
+from schemas.track_jobs import TrackCreate, TrackPublic
+from service.client.calls import EVENTS_RECONNECTS, POLL_S, Calls, ImageInput, image_part
 from service.client.errors import (
     ApiError,
     BadRequest,
@@ -59,15 +61,15 @@ from service.client.errors import (
     Unauthorized,
     UnsupportedMediaType,
     WaitTimeout,
-    error_from,
 )
-from service.client.events import JobEvent, parse_event, read_sse
+from service.client.events import ESTIMATES, TRACKS, EstimateEvent, JobEvent, TrackEvent
 
 __all__ = [
     "ApiError",
     "BadRequest",
     "Client",
     "Conflict",
+    "EstimateEvent",
     "Forbidden",
     "JobEvent",
     "NotFound",
@@ -77,99 +79,30 @@ __all__ = [
     "ServerError",
     "ServiceUnavailable",
     "ServiceUnreachable",
+    "TrackEvent",
     "Unauthorized",
     "UnsupportedMediaType",
     "WaitTimeout",
 ]
 
-#: Default timeout of one HTTP request, s.
-DEFAULT_TIMEOUT_S = 30.0
-#: Default retries of a request after a dropped connection, a 503 or a 429.
-DEFAULT_RETRIES = 3
-#: Longest wait before one retry, s (a Retry-After above it is cut to it).
-MAX_RETRY_WAIT_S = 30.0
-#: First pause after a dropped connection, s (doubled at each further retry).
-BACKOFF_S = 0.5
-#: Interval of polling when the event stream is not available, s.
-POLL_S = 1.0
-#: Read timeout of an event stream, s: the service sends a keep-alive every 15 s by default.
-EVENTS_READ_TIMEOUT_S = 60.0
-#: Times an event stream is reopened after it dropped, before ``wait`` falls back to polling.
-EVENTS_RECONNECTS = 5
-_IMAGE_TYPES = {".png": "image/png", ".jpg": "image/jpeg", ".jpeg": "image/jpeg"}
-_IMAGE_TYPES |= {".tif": "image/tiff", ".tiff": "image/tiff"}
-
 
 # ----------------------------------------------------------------------------- the client
-ImageInput = bytes | str | Path
 RequestInput = EstimateCreate | Mapping[str, Any]
+TrackRequestInput = TrackCreate | Mapping[str, Any]
 #: One status or several (a list, since ``Client.list`` hides the builtin in the class).
 StatusFilter = JobStatus | list[JobStatus] | None
 
 
-class Client:
+class Client(Calls):
     """Calls of the ``/v1`` API (see the module docstring); use as a context manager, or
-    ``close()`` it."""
-
-    def __init__(
-        self,
-        base_url: str = "http://127.0.0.1:8000",
-        api_key: str | None = None,
-        timeout_s: float = DEFAULT_TIMEOUT_S,
-        retries: int = DEFAULT_RETRIES,
-        max_retry_wait_s: float = MAX_RETRY_WAIT_S,
-        transport: httpx.BaseTransport | None = None,
-    ) -> None:
-        headers = {"User-Agent": f"proxpose-client/{__version__}"}
-        if api_key:
-            headers["Authorization"] = f"Bearer {api_key}"
-        self.retries = retries
-        self.max_retry_wait_s = max_retry_wait_s
-        self.http = httpx.Client(
-            base_url=base_url.rstrip("/"), headers=headers, timeout=timeout_s, transport=transport
-        )
-
-    def close(self) -> None:
-        self.http.close()
+    ``close()`` it. ``Client(base_url, api_key=None, timeout_s=30.0, retries=3,
+    max_retry_wait_s=30.0, transport=None)``."""
 
     def __enter__(self) -> Client:
         return self
 
     def __exit__(self, *exc: object) -> None:
         self.close()
-
-    # ------------------------------------------------------------------ transport
-    def _request(
-        self, method: str, path: str, *, idempotent: bool, **kwargs: Any
-    ) -> httpx.Response:
-        """One call, retried after a dropped connection (when ``idempotent``) and after a 503
-        or 429 (as Retry-After says); error answers raise :class:`ApiError`."""
-        attempt = 0
-        while True:
-            try:
-                response = self.http.request(method, path, **kwargs)
-            except httpx.TransportError as exc:
-                if not idempotent or attempt >= self.retries:
-                    raise ServiceUnreachable(f"{method} {path}: {exc!r}") from exc
-                self._pause(BACKOFF_S * 2**attempt)
-                attempt += 1
-                continue
-            if response.is_success:
-                return response
-            error = error_from(response)
-            retryable = response.status_code in (429, 503) and error.retry_after_s is not None
-            if not retryable or attempt >= self.retries:
-                raise error
-            self._pause(error.retry_after_s or BACKOFF_S)
-            attempt += 1
-
-    def _pause(self, seconds: float) -> None:
-        time.sleep(min(self.max_retry_wait_s, seconds))
-
-    def _json(self, method: str, path: str, model: type[Any], **kwargs: Any) -> Any:
-        idempotent = kwargs.pop("idempotent", method in ("GET", "DELETE"))
-        response = self._request(method, path, idempotent=idempotent, **kwargs)
-        return model.model_validate(response.json())
 
     # ------------------------------------------------------------------ models
     def upload_model(self, path: str | Path, name: str | None = None) -> ModelPublic:
@@ -198,26 +131,10 @@ class Client:
         """Queue an estimate of ``image`` (a path or the file's bytes) for ``request`` (an
         :class:`~schemas.jobs.EstimateCreate` or the same as a dict, sent as given: the
         service validates it and answers each bad field)."""
-        if isinstance(request, BaseModel):
-            text = request.model_dump_json(exclude_unset=True, by_alias=True)
-        else:
-            text = json.dumps(dict(request))
-        files = {
-            "image": _image_part(image),
-            "request": ("request.json", text.encode(), "application/json"),
-        }
-        key = idempotency_key or uuid.uuid4().hex
-        return self._json(  # type: ignore[no-any-return]
-            "POST",
-            "/v1/estimates",
-            EstimatePublic,
-            files=files,
-            headers={"Idempotency-Key": key},
-            idempotent=True,
-        )
+        return self._submit(ESTIMATES, [("image", image_part(image))], request, idempotency_key)
 
     def get(self, job_id: str) -> EstimatePublic:
-        return self._json("GET", f"/v1/estimates/{job_id}", EstimatePublic)  # type: ignore[no-any-return]
+        return self._get(ESTIMATES, job_id)
 
     def list(
         self,
@@ -251,49 +168,17 @@ class Client:
     def cancel(self, job_id: str) -> EstimatePublic:
         """Cancel a queued job, or ask a running one to stop (raises :class:`Conflict` when it
         has already ended)."""
-        return self._json("DELETE", f"/v1/estimates/{job_id}", EstimatePublic)  # type: ignore[no-any-return]
+        return self._cancel(ESTIMATES, job_id)
 
     def artifact(self, job_id: str, name: str) -> bytes:
         """A PNG artifact of a succeeded job (``difference``, ``final_render``, ...)."""
-        return self._request(
-            "GET", f"/v1/estimates/{job_id}/artifacts/{name}", idempotent=True
-        ).content
+        return self._artifact(ESTIMATES, job_id, name)
 
-    def events(self, job_id: str, reconnects: int = EVENTS_RECONNECTS) -> Iterator[JobEvent]:
-        """The job's events until ``end``. A dropped stream is reopened (``Last-Event-ID``: no
-        progress event is repeated) up to ``reconnects`` times in a row."""
-        last_id: str | None = None
-        failures = 0
-        while True:
-            headers = {"Accept": "text/event-stream"}
-            if last_id is not None:
-                headers["Last-Event-ID"] = last_id
-            timeout = httpx.Timeout(self.http.timeout.connect, read=EVENTS_READ_TIMEOUT_S)
-            try:
-                with self.http.stream(
-                    "GET", f"/v1/estimates/{job_id}/events", headers=headers, timeout=timeout
-                ) as response:
-                    if not response.is_success:
-                        response.read()
-                        raise error_from(response)
-                    for kind, data, event_id in read_sse(response.iter_lines()):
-                        failures = 0
-                        event = parse_event(kind, data, event_id)
-                        if event_id is not None:
-                            last_id = event_id
-                        yield event
-                        if kind == "end":
-                            return
-            except httpx.TransportError as exc:
-                failures += 1
-                if failures > reconnects:
-                    raise ServiceUnreachable(f"event stream of {job_id}: {exc!r}") from exc
-                self._pause(BACKOFF_S * 2 ** (failures - 1))
-                continue
-            # the stream closed without an end event (the job expired): ask for its state
-            failures += 1
-            if failures > reconnects:
-                raise ServiceUnreachable(f"event stream of {job_id} closed without an end")
+    def events(self, job_id: str, reconnects: int = EVENTS_RECONNECTS) -> Iterator[EstimateEvent]:
+        """The job's events until ``end`` (``status``, ``progress`` after every iteration). A
+        dropped stream is reopened (``Last-Event-ID``: no progress event is repeated) up to
+        ``reconnects`` times in a row."""
+        return self._events(ESTIMATES, job_id, reconnects)
 
     def wait(
         self, job_id: str, timeout_s: float | None = None, poll_s: float = POLL_S
@@ -301,24 +186,46 @@ class Client:
         """The job once it has ended (succeeded, failed or cancelled): follows its event stream,
         and polls when the stream cannot be had. Raises :class:`WaitTimeout` after
         ``timeout_s``."""
-        deadline = None if timeout_s is None else time.monotonic() + timeout_s
-        if deadline is None:
-            try:
-                for event in self.events(job_id):
-                    if event.job is not None:
-                        return event.job
-            except (ServiceUnreachable, ServiceUnavailable):
-                pass  # fall back to polling
-        while True:
-            job = self.get(job_id)
-            if job.status in TERMINAL_STATUSES:
-                return job
-            if deadline is not None and time.monotonic() >= deadline:
-                raise WaitTimeout(job, timeout_s or 0.0)
-            left = (
-                poll_s if deadline is None else min(poll_s, max(0.0, deadline - time.monotonic()))
-            )
-            time.sleep(left)
+        return self._wait(ESTIMATES, job_id, timeout_s, poll_s)
+
+    # ------------------------------------------------------------------ tracks
+    def submit_track(
+        self,
+        frames: Sequence[ImageInput],
+        request: TrackRequestInput,
+        idempotency_key: str | None = None,
+    ) -> TrackPublic:
+        """Queue a track of ``frames`` (paths or bytes, in order) for ``request`` (a
+        :class:`~schemas.track_jobs.TrackCreate` or the same as a dict: REQUEST.json of
+        ``proxpose track`` plus ``model_id``)."""
+        parts = [("frames", image_part(frame)) for frame in frames]
+        return self._submit(TRACKS, parts, request, idempotency_key)
+
+    def get_track(self, job_id: str) -> TrackPublic:
+        """The track: status, the frames so far, the result once it succeeded."""
+        return self._get(TRACKS, job_id)
+
+    def cancel_track(self, job_id: str) -> TrackPublic:
+        return self._cancel(TRACKS, job_id)
+
+    def track_artifact(self, job_id: str, name: str) -> bytes:
+        """An artifact of a succeeded track: ``trajectory``, ``track.csv``, ``overlay_<k>``."""
+        return self._artifact(TRACKS, job_id, name)
+
+    def track_json(self, job_id: str) -> TrackResult:
+        """The track.json of a succeeded track."""
+        return self._json("GET", f"/v1/tracks/{job_id}/track.json", TrackResult)  # type: ignore[no-any-return]
+
+    def track_events(
+        self, job_id: str, reconnects: int = EVENTS_RECONNECTS
+    ) -> Iterator[TrackEvent]:
+        """The track's events until ``end``: ``progress`` after every frame, carrying it."""
+        return self._events(TRACKS, job_id, reconnects)
+
+    def wait_track(
+        self, job_id: str, timeout_s: float | None = None, poll_s: float = POLL_S
+    ) -> TrackPublic:
+        return self._wait(TRACKS, job_id, timeout_s, poll_s)
 
     # ------------------------------------------------------------------ renders, health
     def render(self, request: RenderCreate | Mapping[str, Any]) -> bytes:
@@ -337,14 +244,3 @@ class Client:
     def ready(self) -> dict[str, Any]:
         """``/readyz`` (raises :class:`ServiceUnavailable` while the service is not ready)."""
         return self._request("GET", "/readyz", idempotent=True).json()  # type: ignore[no-any-return]
-
-
-def _image_part(image: ImageInput) -> tuple[str, bytes, str]:
-    if isinstance(image, bytes):
-        return "image", image, "application/octet-stream"
-    path = Path(image)
-    return (
-        path.name,
-        path.read_bytes(),
-        _IMAGE_TYPES.get(path.suffix.lower(), "application/octet-stream"),
-    )

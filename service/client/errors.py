@@ -8,8 +8,9 @@ from collections.abc import Mapping
 
 import httpx
 
-from schemas.jobs import EstimatePublic
+from schemas.jobs import JobSummary
 from schemas.problem import Problem
+from schemas.track_jobs import TrackPublic
 
 
 class ProxposeClientError(Exception):
@@ -89,9 +90,10 @@ _BY_STATUS: dict[int, type[ApiError]] = {
 class WaitTimeout(ProxposeClientError):
     """``wait`` gave up before the job ended; ``job`` is its last state."""
 
-    def __init__(self, job: EstimatePublic, timeout_s: float) -> None:
+    def __init__(self, job: JobSummary, timeout_s: float) -> None:
         self.job = job
-        super().__init__(f"estimate {job.id} is still {job.status} after {timeout_s:g} s")
+        kind = "track" if isinstance(job, TrackPublic) else "estimate"
+        super().__init__(f"{kind} {job.id} is still {job.status} after {timeout_s:g} s")
 
 
 def _retry_after(headers: Mapping[str, str]) -> float | None:
