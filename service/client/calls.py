@@ -40,6 +40,9 @@ EVENTS_READ_TIMEOUT_S = 60.0
 EVENTS_RECONNECTS = 5
 _IMAGE_TYPES = {".png": "image/png", ".jpg": "image/jpeg", ".jpeg": "image/jpeg"}
 _IMAGE_TYPES |= {".tif": "image/tiff", ".tiff": "image/tiff"}
+#: Leading bytes of the image formats the service reads, and their media types.
+_IMAGE_MAGIC = {b"\x89PNG": "image/png", b"\xff\xd8\xff": "image/jpeg"}
+_IMAGE_MAGIC |= {b"II*\x00": "image/tiff", b"MM\x00*": "image/tiff"}
 
 ImageInput = bytes | str | Path
 #: A multipart part: (file name, bytes, content type).
@@ -198,12 +201,10 @@ def _request_text(request: BaseModel | Mapping[str, Any]) -> bytes:
 
 
 def image_part(image: ImageInput) -> Part:
-    """A file part of ``image`` (a path, typed by its suffix, or bytes)."""
-    if isinstance(image, bytes):
-        return "image", image, "application/octet-stream"
-    path = Path(image)
-    return (
-        path.name,
-        path.read_bytes(),
-        _IMAGE_TYPES.get(path.suffix.lower(), "application/octet-stream"),
-    )
+    """A file part of ``image`` (a path or bytes), typed as the OpenAPI document's encoding
+    lists (PNG, JPEG, TIFF) by its leading bytes, else by its suffix."""
+    data = image if isinstance(image, bytes) else Path(image).read_bytes()
+    name = "image" if isinstance(image, bytes) else Path(image).name
+    sniffed = next((t for magic, t in _IMAGE_MAGIC.items() if data.startswith(magic)), None)
+    suffix = Path(name).suffix.lower()
+    return name, data, sniffed or _IMAGE_TYPES.get(suffix, "application/octet-stream")
