@@ -33,19 +33,27 @@ DB = 12
 
 
 @pytest.fixture(scope="module")
-def api_url(redis_server: RedisServer, tmp_path_factory: pytest.TempPathFactory) -> Iterator[str]:
-    root = tmp_path_factory.mktemp("client")
-    r = redis.Redis.from_url(redis_server.url(DB))
-    r.flushdb()
+def client_env(
+    redis_server: RedisServer, tmp_path_factory: pytest.TempPathFactory
+) -> dict[str, str]:
+    """The environment of the API process (and of a worker that serves it)."""
     env = {
         **os.environ,
         "PROXPOSE_REDIS_URL": redis_server.url(DB),
-        "PROXPOSE_DATA_DIR": str(root),
+        "PROXPOSE_DATA_DIR": str(tmp_path_factory.mktemp("client")),
     }
     for name in ("PROXPOSE_API_KEYS", "PROXPOSE_ADMIN_API_KEYS"):
         env.pop(name, None)
+    return env
+
+
+@pytest.fixture(scope="module")
+def api_url(client_env: dict[str, str]) -> Iterator[str]:
+    root = Path(client_env["PROXPOSE_DATA_DIR"])
+    r = redis.Redis.from_url(client_env["PROXPOSE_REDIS_URL"])
+    r.flushdb()
     port = free_port()
-    proc = start_api(env, root / "api.log", port)
+    proc = start_api(client_env, root / "api.log", port)
     try:
         yield f"http://127.0.0.1:{port}"
     finally:

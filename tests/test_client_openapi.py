@@ -19,7 +19,7 @@ import httpx
 import jsonschema
 import pytest
 from service_api_helpers import base_request, png
-from test_client import api_url  # noqa: F401 (the API process fixture)
+from test_client import api_url, client_env  # noqa: F401 (the API process fixtures)
 
 from service.client import ApiError, Client, NotFound
 from service.client.errors import _BY_STATUS

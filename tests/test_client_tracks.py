@@ -8,11 +8,15 @@ from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
+import redis
+from conftest import WorkerPool, log_tails
 from service_api_helpers import base_request, png
-from test_client import api_url  # noqa: F401 (the API process fixture)
+from test_client import api_url, client_env  # noqa: F401 (the API process fixtures)
 
+from schemas.settings import get_settings
 from schemas.track_jobs import TrackCreate
 from service.client import BadRequest, Client, Conflict, NotFound, PayloadTooLarge, WaitTimeout
+from service.store import Keys
 
 
 @pytest.fixture
@@ -63,3 +67,38 @@ def test_bad_tracks_raise_with_the_field(api: Client) -> None:
     with pytest.raises(PayloadTooLarge) as many:
         api.submit_track([png()] * 501, base_request())
     assert many.value.errors[0].loc == ["body", "frames"]
+
+
+@pytest.mark.slow
+def test_a_worker_runs_a_track_the_client_follows_to_its_artifacts(
+    api: Client,
+    client_env: dict[str, str],  # noqa: F811
+    tmp_path_factory: pytest.TempPathFactory,
+    variant: str,
+) -> None:
+    """Two ray-traced frames of the demo satellite (test_service_tracks_worker's sequence), a
+    real ``proxpose worker`` process: the client streams one progress event per frame, and
+    the result, track.json and the artifacts come back typed."""
+    from test_service_tracks_worker import make_frames
+
+    frames, request = make_frames(tmp_path_factory.mktemp("client-track"))
+    frames, request["ground_truth"] = frames[:2], request["ground_truth"][:2]
+    logs = Path(client_env["PROXPOSE_DATA_DIR"])
+    r = redis.Redis.from_url(client_env["PROXPOSE_REDIS_URL"])
+    pool = WorkerPool(client_env, logs, r, Keys(get_settings().redis_prefix).estimate_queue)
+    pool.ensure(1)
+    try:
+        job = api.submit_track(frames, request)
+        events = list(api.track_events(job.id))
+        done = api.wait_track(job.id, timeout_s=600)
+    finally:
+        pool.terminate_all()
+    assert done.status == "succeeded", (done.error, log_tails(logs))
+    progress = [e.progress for e in events if e.progress is not None]
+    assert [p.frames_done for p in progress] == [1, 2]
+    assert [p.frame.image for p in progress] == [f.name for f in frames]
+    assert events[-1].job is not None and events[-1].job.status == "succeeded"
+    assert done.result is not None and api.track_json(job.id) == done.result
+    assert api.track_artifact(job.id, "trajectory")[:4] == b"\x89PNG"
+    table = api.track_artifact(job.id, "track.csv").decode().splitlines()
+    assert "image" in table[0].split(",") and len(table) == 3
