@@ -94,9 +94,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--terrain",
         action="store_true",
-        help="add the terrain band: a cratered heightfield filling the frame (models terrain and "
-        "the held-out terrain-ridged), references ray traced with other physics, each estimate "
-        "also started at the truth",
+        help="add the terrain band (models terrain, terrain-ridged; see bench/README.md)",
     )
     parser.add_argument(
         "--methods",
