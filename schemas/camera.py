@@ -21,7 +21,14 @@ class Camera(BaseModel):
     v grows down. A non-square pixel (fx ≠ fy) and a skew are rendered exactly.
     """
 
-    model_config = ConfigDict(extra="forbid")
+    model_config = ConfigDict(
+        extra="forbid",
+        json_schema_extra={
+            "examples": [
+                {"width": 512, "height": 512, "fx": 955.5, "fy": 955.5, "cx": 255.5, "cy": 255.5}
+            ]
+        },
+    )
 
     width: int = Field(ge=IMAGE_SIDE_MIN_PX, le=IMAGE_SIDE_MAX_PX, description="Image width, px.")
     height: int = Field(ge=IMAGE_SIDE_MIN_PX, le=IMAGE_SIDE_MAX_PX, description="Image height, px.")

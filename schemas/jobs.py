@@ -85,8 +85,8 @@ class EstimateOutcome(BaseModel):
     )
 
 
-class EstimateSummary(BaseModel):
-    """One job in a listing (the full resource adds the result and the artifacts)."""
+class JobSummary(BaseModel):
+    """What every job resource (an estimate, a track) shows of the job itself."""
 
     id: str
     status: JobStatus
@@ -94,7 +94,6 @@ class EstimateSummary(BaseModel):
     created_at: datetime
     started_at: datetime | None = None
     finished_at: datetime | None = None
-    progress: Progress
     error: JobError | None = None
     cancel_requested: bool = Field(
         default=False, description="A DELETE asked the running job to stop; it stops shortly."
@@ -104,6 +103,12 @@ class EstimateSummary(BaseModel):
         description="Times a worker started the job: more than 1 when a worker died running it "
         "and the job was queued again.",
     )
+
+
+class EstimateSummary(JobSummary):
+    """One job in a listing (the full resource adds the result and the artifacts)."""
+
+    progress: Progress
     outcome: EstimateOutcome | None = Field(
         default=None, description="Headline figures of the result, once succeeded."
     )

@@ -16,7 +16,14 @@ SUN_DIRECTION_NORM_TOLERANCE = 1e-3
 class Lighting(BaseModel):
     """A sun (directional light) and an ambient term, both in the camera frame."""
 
-    model_config = ConfigDict(extra="forbid")
+    model_config = ConfigDict(
+        extra="forbid",
+        json_schema_extra={
+            "examples": [
+                {"sun_direction": [0.0, -0.6, -0.8], "sun_irradiance": 3.0, "ambient": 0.02}
+            ]
+        },
+    )
 
     sun_direction: Annotated[list[FiniteFloat], Field(min_length=3, max_length=3)] = Field(
         default=[0.0, -0.6, -0.8],

@@ -48,7 +48,12 @@ METHOD_PRESETS: dict[str, dict[str, Any]] = {
 class EstimateOptions(BaseModel):
     """Tunables of the estimator. Units are in the field names or descriptions."""
 
-    model_config = ConfigDict(extra="forbid")
+    model_config = ConfigDict(
+        extra="forbid",
+        json_schema_extra={
+            "examples": [{"method": "default"}, {"method": "fast", "max_iterations": 20}]
+        },
+    )
 
     method: Method = Field(
         default="default",

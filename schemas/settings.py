@@ -180,6 +180,15 @@ class Settings(BaseSettings):
         description="Most triangles a model may have (checked on upload and when a worker loads "
         "it).",
     )
+    max_track_frames: int = Field(
+        default=500, ge=1, description="Most frames one track (`POST /v1/tracks`) may have."
+    )
+    max_track_bytes: int = Field(
+        default=64 * _MIB,
+        ge=1024,
+        description="Largest total size of one track's frames, bytes (each frame also obeys "
+        "max_image_bytes).",
+    )
     max_request_json_bytes: int = Field(
         default=_MIB,
         ge=1024,

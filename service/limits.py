@@ -17,13 +17,14 @@ def _too_large(size: int, limit: int) -> list[dict[str, Any]]:
 
 
 class BodySizeLimitMiddleware:
-    """Answers 413 when Content-Length, or the bytes actually received, exceed the limit.
+    """Answers 413 when Content-Length, or the bytes actually received, exceed the limit
+    (``max_bytes(path)``: a route that takes several files has a larger one).
 
     While the app reads the body, the overflow is raised as an ApiError from ``receive``,
     which FastAPI's body parsing re-raises as is and the exception handler turns into a 413.
     """
 
-    def __init__(self, app: ASGIApp, max_bytes: Callable[[], int]) -> None:
+    def __init__(self, app: ASGIApp, max_bytes: Callable[[str], int]) -> None:
         self.app = app
         self.max_bytes = max_bytes
 
@@ -31,7 +32,7 @@ class BodySizeLimitMiddleware:
         if scope["type"] != "http":
             await self.app(scope, receive, send)
             return
-        limit = self.max_bytes()
+        limit = self.max_bytes(scope["path"])
         declared = dict(scope["headers"]).get(b"content-length")
         if declared is not None and declared.isdigit() and int(declared) > limit:
             errors = _too_large(int(declared), limit)

@@ -29,7 +29,18 @@ from service.metrics import Metrics, MetricsMiddleware
 from service.openapi import install as install_openapi
 from service.openapi import operation_id
 from service.ratelimit import SubmissionRateLimitMiddleware
-from service.routes import docs, estimates, health, metrics, models, pages, renders, session
+from service.resources import TRACKS_PATH
+from service.routes import (
+    docs,
+    estimates,
+    health,
+    metrics,
+    models,
+    pages,
+    renders,
+    session,
+    tracks,
+)
 from service.store import Keys
 from service.store.blobs import open_blob_store
 from service.store.budget import warn_if_unbounded
@@ -54,8 +65,11 @@ the result and the PNG artifacts. Jobs run on workers that share only Redis with
 """
 
 
-def request_body_limit(settings: Settings) -> int:
-    """Largest request body accepted: the largest upload plus framing."""
+def request_body_limit(settings: Settings, path: str = "") -> int:
+    """Largest request body accepted at ``path``: its largest upload plus framing (a track's
+    frames at /v1/tracks; elsewhere an image or a model)."""
+    if path == TRACKS_PATH:
+        return settings.max_track_bytes + BODY_OVERHEAD_BYTES
     return max(settings.max_image_bytes, settings.max_model_bytes) + BODY_OVERHEAD_BYTES
 
 
@@ -114,7 +128,7 @@ def create_app() -> FastAPI:
     app.add_middleware(SubmissionRateLimitMiddleware, settings=get_settings)
     app.add_middleware(AuthMiddleware, settings=get_settings)
     app.add_middleware(
-        BodySizeLimitMiddleware, max_bytes=lambda: request_body_limit(get_settings())
+        BodySizeLimitMiddleware, max_bytes=lambda path: request_body_limit(get_settings(), path)
     )
     app.add_middleware(ConfiguredCORSMiddleware, settings=get_settings)
     app.add_middleware(SecurityHeadersMiddleware)
@@ -122,7 +136,7 @@ def create_app() -> FastAPI:
     install_error_handlers(app)
     document_bearer_auth(app)
     install_openapi(app)  # after: its document, with the security schemes, is completed
-    for module in (health, metrics, models, estimates, renders, session):
+    for module in (health, metrics, models, estimates, tracks, renders, session):
         app.include_router(module.router)
     app.include_router(pages.router)  # the browser pages
     app.include_router(docs.router)  # /docs, offline

@@ -34,7 +34,7 @@ def run(args: argparse.Namespace) -> int:
         print(
             f"moved to {blobs.url}: {report.images} images, {report.artifacts} artifacts, "
             f"{report.models} model files ({report.bytes} bytes); {report.dropped} Redis "
-            "copies of ended or deleted records dropped"
+            f"copies of ended or deleted records dropped; {report.results} results compressed"
         )
         if not args.no_sweep:
             swept = BlobSweeper(r, keys, blobs).sweep()

@@ -2,10 +2,11 @@
 
 - Operation ids are the route functions' names (``create_estimate``), not FastAPI's
   ``create_estimate_v1_estimates_post``: clients generated from the document keep them.
-- The multipart body of ``POST /v1/estimates`` describes its ``request`` part as
-  ``application/json`` with the :class:`~schemas.jobs.EstimateCreate` schema (the route reads it
-  as text, to answer its own field errors), so the camera, pose, lighting and options models are
-  in the components with their docs and examples.
+- The multipart bodies of ``POST /v1/estimates`` and ``POST /v1/tracks`` describe their
+  ``request`` part as ``application/json`` with the :class:`~schemas.jobs.EstimateCreate` /
+  :class:`~schemas.track_jobs.TrackCreate` schema (the routes read it as text, to answer their
+  own field errors), so the camera, pose, lighting and options models are in the components
+  with their docs and examples.
 - Every error answer is ``application/problem+json`` with the :class:`~schemas.problem.Problem`
   schema; every operation documents 422 (when it takes input), 500 and 503 (Redis away), and
   ``Retry-After`` on 202, 429 and 503.
@@ -22,6 +23,7 @@ from pydantic.json_schema import models_json_schema
 
 from schemas.jobs import EstimateCreate
 from schemas.problem import PROBLEM_MEDIA_TYPE, Problem
+from schemas.track_jobs import TrackCreate
 
 _REF = "#/components/schemas/{model}"
 _RETRY_AFTER = {
@@ -37,7 +39,13 @@ _ESTIMATE_BODY_DOC = (
     "`image`: the reference image (PNG, JPEG or TIFF, exactly the camera's size); `request`: "
     "the estimate request as JSON (EstimateCreate), sent as a form field or a file part."
 )
+_TRACK_BODY_DOC = (
+    "`frames`: the sequence's images in order (repeat the part; PNG, JPEG or TIFF, exactly the "
+    "camera's size); `request`: the track request as JSON (TrackCreate), sent as a form field "
+    "or a file part."
+)
 _IMAGE_TYPES = "image/png, image/jpeg, image/tiff"
+_BINARY = {"type": "string", "format": "binary", "contentMediaType": "application/octet-stream"}
 
 
 def operation_id(route: APIRoute) -> str:
@@ -50,32 +58,47 @@ def _schemas(*models: type[Any]) -> dict[str, Any]:
     return dict(top.get("$defs", {}))
 
 
-def _estimate_body() -> dict[str, Any]:
+def _multipart_body(
+    files: str, file_schema: dict[str, Any], model: str, doc: str
+) -> dict[str, Any]:
+    """A submission's body: the ``files`` part(s) and the ``request`` part as ``model``."""
     return {
         "required": True,
-        "description": _ESTIMATE_BODY_DOC,
+        "description": doc,
         "content": {
             "multipart/form-data": {
                 "schema": {
                     "type": "object",
-                    "required": ["image", "request"],
+                    "required": [files, "request"],
                     "properties": {
-                        "image": {
-                            "type": "string",
-                            "format": "binary",
-                            "contentMediaType": "application/octet-stream",
-                            "description": "Reference image: PNG, JPEG or TIFF.",
-                        },
-                        "request": {"$ref": _REF.format(model="EstimateCreate")},
+                        files: file_schema,
+                        "request": {"$ref": _REF.format(model=model)},
                     },
                 },
                 "encoding": {
                     "request": {"contentType": "application/json"},
-                    "image": {"contentType": _IMAGE_TYPES},
+                    files: {"contentType": _IMAGE_TYPES},
                 },
             }
         },
     }
+
+
+#: The multipart bodies the document describes itself, by (method, path).
+_BODIES = {
+    ("post", "/v1/estimates"): _multipart_body(
+        "image",
+        {**_BINARY, "description": "Reference image: PNG, JPEG or TIFF."},
+        "EstimateCreate",
+        _ESTIMATE_BODY_DOC,
+    ),
+    ("post", "/v1/tracks"): _multipart_body(
+        "frames",
+        {"type": "array", "items": _BINARY, "description": "The frames, in order."},
+        "TrackCreate",
+        _TRACK_BODY_DOC,
+    ),
+}
 
 
 def _problem_content() -> dict[str, Any]:
@@ -105,15 +128,15 @@ def _complete_operation(operation: dict[str, Any], path: str) -> None:
 def complete(schema: dict[str, Any]) -> dict[str, Any]:
     """Fill in the document FastAPI built (in place; returned for convenience)."""
     components = schema.setdefault("components", {}).setdefault("schemas", {})
-    components.update(_schemas(EstimateCreate, Problem))
+    components.update(_schemas(EstimateCreate, TrackCreate, Problem))
     for name in ("HTTPValidationError", "ValidationError"):
         components.pop(name, None)
     for path, operations in schema.get("paths", {}).items():
         for method, operation in operations.items():
-            if (method, path) == ("post", "/v1/estimates"):
+            if (method, path) in _BODIES:
                 old = operation["requestBody"]["content"]["multipart/form-data"]["schema"]
                 components.pop(old["$ref"].rsplit("/", 1)[-1], None)
-                operation["requestBody"] = _estimate_body()
+                operation["requestBody"] = _BODIES[method, path]
             _complete_operation(operation, path)
     return schema
 

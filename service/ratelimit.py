@@ -1,8 +1,8 @@
 """Per-key rate limit of submissions, answered 429 with Retry-After before the body is read.
 
-Submissions (POST of estimates, renders and models) are metered per API key by the generic cell
-rate algorithm (GCRA): a key may send ``submission_burst`` at once, then one every
-``60 / submissions_per_minute`` seconds. The state is one Redis key per API key holding the
+Submissions (POST of estimates, tracks, renders and models) are metered per API key by the
+generic cell rate algorithm (GCRA): a key may send ``submission_burst`` at once, then one
+every ``60 / submissions_per_minute`` seconds. The state is one Redis key per API key holding the
 theoretical arrival time, updated by a Lua script on Redis' clock, so every API process shares
 the limit. (The cap on queued jobs per key is checked when a job is created, see JobStore.)
 """
@@ -25,7 +25,12 @@ log = logging.getLogger(__name__)
 
 #: Routes that count as submissions.
 SUBMISSIONS = frozenset(
-    {("POST", "/v1/estimates"), ("POST", "/v1/renders"), ("POST", "/v1/models")}
+    {
+        ("POST", "/v1/estimates"),
+        ("POST", "/v1/tracks"),
+        ("POST", "/v1/renders"),
+        ("POST", "/v1/models"),
+    }
 )
 
 # KEYS: the key's state. ARGV: emission interval (ms), burst tolerance (ms).

@@ -39,6 +39,16 @@ CUBE_OBJ = (
     + "f 1 3 2\nf 2 3 4\nf 5 6 7\nf 6 8 7\nf 1 2 5\nf 2 6 5\n"
     + "f 3 7 4\nf 4 7 8\nf 1 5 3\nf 3 5 7\nf 2 4 6\nf 4 8 6\n"
 ).encode()
+#: Redis memory a finished 512² estimate may take (issue 17): its bytes are in the blob store.
+JOB_REDIS_BUDGET_BYTES = 20_000
+#: What grows with a job is its result's iteration history (~0.7 kB per iteration as JSON, kept
+#: zlib-compressed: ~0.2 kB); the rest of the hash (request, timestamps, artifact references,
+#: the result's fixed part) is ~5 kB. A job's memory is held to BASE + PER_ITERATION × iterations
+#: (at most the budget), which a plain result would overshoot from the first iterations on.
+JOB_REDIS_BASE_BYTES = 5_500
+JOB_REDIS_PER_ITERATION_BYTES = 350
+#: Largest hash field but the compressed result (the artifact references are ~1.1 kB).
+JOB_FIELD_MAX_BYTES = 2_048
 ARTIFACTS = {"overlay_1", "overlay_2", "overlay_final", "difference", "final_render", "convergence"}
 
 # The truth: the demo satellite 14 m away, turned 110° about (1, 0.6, 0.3).
@@ -177,3 +187,29 @@ def assert_png(data: bytes) -> Image.Image:
     assert data[:8] == b"\x89PNG\r\n\x1a\n"
     Image.open(io.BytesIO(data)).verify()
     return Image.open(io.BytesIO(data))
+
+
+def job_redis_bytes(r: redis.Redis, job_id: str) -> dict[str, int]:
+    """``MEMORY USAGE … SAMPLES 0`` of every key naming the job (its hash; RQ's job hash and
+    the lease while it runs), bytes."""
+    return {
+        k.decode(): int(r.memory_usage(k, samples=0) or 0) for k in r.scan_iter(match=f"*{job_id}*")
+    }
+
+
+def assert_job_redis_budget(r: redis.Redis, job: dict[str, Any]) -> int:
+    """A finished job keeps only metadata in Redis: no plain result, no big field, its result
+    compressed, and its memory within the budget scaled by its iterations; the bytes used."""
+    fields = r.hgetall(KEYS.job(job["id"]))
+    assert b"result" not in fields and b"result_z" in fields, sorted(fields)
+    big = {f: len(v) for f, v in fields.items() if len(v) > JOB_FIELD_MAX_BYTES}
+    assert set(big) <= {b"result_z"}, big
+    assert len(fields[b"result_z"]) < 0.5 * len(json.dumps(job["result"]))
+    per_key = job_redis_bytes(r, job["id"])
+    used = sum(per_key.values())
+    iterations = int(job["result"]["iterations"])
+    bound = min(
+        JOB_REDIS_BUDGET_BYTES, JOB_REDIS_BASE_BYTES + JOB_REDIS_PER_ITERATION_BYTES * iterations
+    )
+    assert used <= bound, (per_key, iterations, {f: len(v) for f, v in fields.items()})
+    return used

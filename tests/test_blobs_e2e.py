@@ -24,6 +24,7 @@ from e2e_helpers import (
     R_TRUE,
     T_TRUE,
     Stack,
+    assert_job_redis_budget,
     assert_png,
     camera,
     estimate_request,
@@ -39,8 +40,6 @@ pytestmark = pytest.mark.slow
 
 #: Redis database of this module.
 DB = 13
-#: Redis memory a finished estimate may take (issue 17).
-JOB_REDIS_BUDGET_BYTES = 20_000
 
 
 @pytest.fixture(scope="module", name="stack")
@@ -87,10 +86,6 @@ def s3_stack(
             r.flushdb()
 
 
-def _redis_bytes(r: redis.Redis, job_id: str) -> int:
-    return sum(int(r.memory_usage(k) or 0) for k in r.scan_iter(match=f"*{job_id}*"))
-
-
 def test_a_real_estimate_keeps_its_bytes_in_the_bucket(stack: Stack, s3_server: S3Server) -> None:  # noqa: F811
     stack.workers.ensure(1)
     job_id = submit(stack, estimate_request(128, max_iterations=6)).json()["id"]
@@ -103,8 +98,7 @@ def test_a_real_estimate_keeps_its_bytes_in_the_bucket(stack: Stack, s3_server: 
         assert_png(got.content)
         again = stack.api.get(url, headers={"If-None-Match": got.headers["etag"]})
         assert again.status_code == 304
-    used = _redis_bytes(stack.r, job_id)
-    assert used <= JOB_REDIS_BUDGET_BYTES, used
+    assert_job_redis_budget(stack.r, job)
     biggest = max(int(stack.r.memory_usage(k) or 0) for k in stack.r.scan_iter())
     assert biggest < 64 * 1024, biggest  # no PNG, image or model file sits in Redis
     metrics = stack.api.get("/metrics").text

@@ -227,6 +227,10 @@ def test_the_sweep_runs_once_per_period_across_workers(svc: Svc) -> None:
 
 
 # ----------------------------------------------------------------------------- older deployments
+#: A result as an older deployment stored it: plain JSON in the hash's ``result`` field.
+LEGACY_RESULT = json.dumps({"iterations": 3, "history": [{"iteration": i} for i in (1, 2, 3)]})
+
+
 def _legacy_records(r: redis.Redis) -> tuple[str, str, str, bytes]:
     """What an API and worker before the blob store left in Redis: a finished job with its
     artifact, a queued job with its image, a model with its file; (ids..., model bytes)."""
@@ -240,6 +244,7 @@ def _legacy_records(r: redis.Redis) -> tuple[str, str, str, bytes]:
     base = {"model_id": "demo-sat", "created_at": "2026-01-01T00:00:00+00:00", "request": "{}"}
     r.hset(KEYS.job(done), mapping={"id": done, "status": "succeeded", "seq": 1, **base})
     r.hset(KEYS.job(done), mapping={"max_iterations": 3, "artifacts": '["difference"]'})
+    r.hset(KEYS.job(done), "result", LEGACY_RESULT)
     r.set(KEYS.job_artifact(done, "difference"), ARTIFACTS["difference"])
     r.hset(KEYS.job(waiting), mapping={"id": waiting, "status": "queued", "seq": 2, **base})
     r.hset(KEYS.job(waiting), "max_iterations", 3)
@@ -274,9 +279,12 @@ def test_an_older_deployments_bytes_are_served_then_migrated(svc: Svc) -> None:
     assert before.status_code == 200 and before.content == ARTIFACTS["difference"]
     assert store.get_image(store.get(waiting)) == png()  # type: ignore[arg-type]
     assert models.data(model_id) == mesh
+    assert store.get(done).result == LEGACY_RESULT  # type: ignore[union-attr]
 
     report = BlobMigration(svc.r, KEYS, svc.blobs).run()
-    assert (report.images, report.artifacts, report.models) == (1, 1, 1)
+    assert (report.images, report.artifacts, report.models, report.results) == (1, 1, 1, 1)
+    assert svc.r.hget(KEYS.job(done), "result") is None  # compressed into result_z
+    assert store.get(done).result == LEGACY_RESULT  # type: ignore[union-attr]
     assert not svc.r.exists(KEYS.job_artifact(done, "difference"), KEYS.job_image(waiting))
     assert not svc.r.exists(KEYS.model_data(model_id))
     after = svc.client.get(url)
@@ -284,7 +292,7 @@ def test_an_older_deployments_bytes_are_served_then_migrated(svc: Svc) -> None:
     assert store.get_image(store.get(waiting)) == png()  # type: ignore[arg-type]
     assert models.data(model_id) == mesh
     again = BlobMigration(svc.r, KEYS, svc.blobs).run()  # resumable: nothing left to move
-    assert (again.images, again.artifacts, again.models, again.dropped) == (0, 0, 0, 0)
+    assert (again.images, again.artifacts, again.models, again.dropped, again.results) == (0,) * 5
 
 
 def test_the_migrate_blobs_command(svc: Svc, redis_server) -> None:  # type: ignore[no-untyped-def]
@@ -301,6 +309,7 @@ def test_the_migrate_blobs_command(svc: Svc, redis_server) -> None:  # type: ign
     )
     assert proc.returncode == 0, proc.stderr
     assert "1 images, 1 artifacts, 1 model files" in proc.stdout
+    assert "1 results compressed" in proc.stdout
     assert "swept:" in proc.stdout
     assert not svc.r.exists(KEYS.job_artifact(done, "difference"))
     assert svc.client.get(f"/v1/estimates/{done}/artifacts/difference").status_code == 200

@@ -1,4 +1,4 @@
-"""Atomic file writes (worker/files.py): whole files or none, readable, no temporary left."""
+"""Atomic file writes (service/store/files.py): whole files or none, readable, no temporary left."""
 
 from __future__ import annotations
 
@@ -7,7 +7,7 @@ from pathlib import Path
 
 import pytest
 
-from worker.files import FILE_MODE, write_atomic
+from service.store.files import FILE_MODE, write_atomic
 
 
 def test_writes_replaces_and_creates_the_parents(tmp_path: Path) -> None:

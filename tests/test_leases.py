@@ -101,3 +101,33 @@ def test_reconcile_recovers_a_job_whose_lease_lapsed(store: JobStore) -> None:
     after = reaper.reconcile(record)
     assert after.status == "failed" and after.error is not None
     assert after.error["code"] == "worker_lost"  # one attempt allowed, and it was lost
+
+
+def test_a_track_whose_worker_died_is_requeued_as_a_track_then_failed(store: JobStore) -> None:
+    """The reaper requeues by the job's kind: a track goes back as the track job, and after
+    job_max_attempts lost workers it fails; its frames stay for the attempts between (the blob
+    sweeper removes them once it has ended)."""
+    from rq import Queue
+    from rq.serializers import JSONSerializer
+
+    from service.store.queues import TRACK_JOB
+
+    job_id = secrets.token_hex(16)
+    frames = [("a.png", b"png-a"), ("b.png", b"png-b")]
+    store.create_track(job_id, "demo-sat", "{}", frames, "", owner="alice", timeout_s=60)
+    queue = Queue(KEYS.estimate_queue, connection=store.r, serializer=JSONSerializer)
+    leases = Leases(store, lease_s=30)
+    for attempt in (1, 2):
+        rq_id = queue.job_ids[0]
+        assert queue.fetch_job(rq_id).func_name == TRACK_JOB  # type: ignore[union-attr]
+        queue.remove(rq_id)
+        record = leases.start(job_id, "w", rq_id)
+        assert record is not None and record.kind == "track" and record.attempts == attempt
+        _lapse(store, job_id)
+        outcome = Reaper(store, max_attempts=2).recover(job_id)
+        assert outcome == ("requeued" if attempt == 1 else "failed"), outcome
+        if attempt == 1:
+            assert store.get_input(store.get(job_id), 1) == b"png-b"  # type: ignore[arg-type]
+    record = store.get(job_id)
+    assert record is not None and record.status == "failed" and record.error is not None
+    assert record.error["code"] == "worker_lost"

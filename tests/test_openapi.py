@@ -21,6 +21,9 @@ from service_api_helpers import (
     submit,
 )
 
+from schemas.camera import Camera
+from schemas.lighting import Lighting
+from schemas.options import EstimateOptions
 from service.main import create_app
 
 METHODS = {"get", "post", "put", "patch", "delete"}
@@ -67,6 +70,39 @@ def test_every_operation_has_a_stable_id_a_summary_and_its_errors(document: dict
     assert {"create_estimate", "get_estimate", "list_estimates", "cancel_estimate"} <= set(ids)
 
 
+def test_the_track_routes_are_documented_with_their_body_and_problems(
+    document: dict[str, Any],
+) -> None:
+    post = document["paths"]["/v1/tracks"]["post"]
+    multipart = post["requestBody"]["content"]["multipart/form-data"]
+    assert multipart["schema"]["required"] == ["frames", "request"]
+    props = multipart["schema"]["properties"]
+    assert props["request"] == {"$ref": "#/components/schemas/TrackCreate"}
+    assert props["frames"]["type"] == "array" and props["frames"]["items"]["format"] == "binary"
+    assert multipart["encoding"]["request"]["contentType"] == "application/json"
+    assert {"202", "409", "413", "415", "422", "429"} <= set(post["responses"])
+    assert "max_track_frames" in post["responses"]["413"]["description"]
+    components = document["components"]["schemas"]
+    assert "TrackCreate" in components and "TrackPublic" in components
+    assert "ground_truth" in components["TrackCreate"]["properties"]
+    ops = {
+        (method, path): op
+        for method, path, op in operations(document)
+        if path.startswith("/v1/tracks")
+    }
+    expected = {
+        ("post", "/v1/tracks"): "create_track",
+        ("get", "/v1/tracks/{job_id}"): "get_track",
+        ("delete", "/v1/tracks/{job_id}"): "cancel_track",
+        ("get", "/v1/tracks/{job_id}/events"): "stream_track_events",
+        ("get", "/v1/tracks/{job_id}/track.json"): "get_track_json",
+        ("get", "/v1/tracks/{job_id}/artifacts/{name}"): "get_track_artifact",
+    }
+    assert {key: op["operationId"] for key, op in ops.items()} == expected
+    for key, op in ops.items():
+        assert "404" in op["responses"] or key[0] == "post", key
+
+
 def test_the_estimate_body_describes_the_request_part(document: dict[str, Any]) -> None:
     body = document["paths"]["/v1/estimates"]["post"]["requestBody"]
     multipart = body["content"]["multipart/form-data"]
@@ -82,6 +118,12 @@ def test_the_estimate_body_describes_the_request_part(document: dict[str, Any]) 
     assert create["properties"]["camera"] == {"$ref": "#/components/schemas/Camera"}
     assert create["properties"]["model_id"]["examples"] == ["demo-sat"]
     assert components["Camera"]["properties"]["fx"].get("description")
+    # every part of the request documents itself with an example that validates
+    models = {"Camera": Camera, "Lighting": Lighting, "EstimateOptions": EstimateOptions}
+    for name, model in models.items():
+        assert components[name]["examples"], name
+        for example in components[name]["examples"]:
+            model.model_validate(example)
     # no dangling references anywhere
     text = str(document)
     for ref in {part.split("'")[0] for part in text.split("#/components/schemas/")[1:]}:

@@ -20,6 +20,7 @@ from e2e_helpers import (
     R_TRUE,
     T_TRUE,
     Stack,
+    assert_job_redis_budget,
     assert_png,
     camera,
     e2e_stack,  # noqa: F401 (the stack fixture)
@@ -36,9 +37,6 @@ from rq.serializers import JSONSerializer
 from service.store import JobStore, Queues
 
 pytestmark = pytest.mark.slow
-
-#: Redis memory a finished estimate may take (issue 17; the bytes are in the blob store).
-JOB_REDIS_BUDGET_BYTES = 20_000
 
 
 def test_queued_job_waits_for_a_worker_and_a_cancelled_one_never_runs(stack: Stack) -> None:
@@ -85,9 +83,8 @@ def test_estimate_converges_to_the_truth_with_progress_and_artifacts(stack: Stac
     assert assert_png(stack.api.get(job["artifacts"]["difference"]).content).size == (192, 192)
     assert job["created_at"] <= job["started_at"] <= job["finished_at"]
     # the bytes are in the blob store: what the job leaves in Redis is its hash (the request,
-    # the result with its history); the issue's budget is 20 kB per finished estimate
-    used = sum(int(stack.r.memory_usage(k) or 0) for k in stack.r.scan_iter(f"*{job['id']}*"))
-    assert used <= JOB_REDIS_BUDGET_BYTES, used
+    # the result with its history, compressed), within issue 17's budget
+    assert_job_redis_budget(stack.r, job)
 
 
 def test_events_stream_progress_then_the_final_state(stack: Stack) -> None:

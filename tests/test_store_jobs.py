@@ -1,10 +1,13 @@
-"""JobStore.create under concurrency, on a real Redis: the per-key cap on active jobs holds
-when many submissions race, and none of them has to retry."""
+"""JobStore on a real Redis: under concurrency, the per-key cap on active jobs holds when many
+submissions race, and none of them has to retry; a finished job's result is stored compressed
+and reads back whole, and a record of an older deployment (plain ``result``) still reads."""
 
 from __future__ import annotations
 
+import json
 import secrets
 import threading
+import zlib
 from collections.abc import Iterator
 from pathlib import Path
 
@@ -14,7 +17,7 @@ from conftest import RedisServer
 
 from service.store import JobStore, Keys
 from service.store.blobs import FileBlobStore
-from service.store.jobs import ActiveJobsLimitError
+from service.store.jobs import TRACEBACK_MAX_CHARS, ActiveJobsLimitError
 
 DB = 9
 THREADS = 24
@@ -104,3 +107,41 @@ def test_a_created_job_reads_back_as_the_record_create_returned(store: JobStore)
     record = store.create("c" * 32, "demo-sat", '{"x": 1}', 7, b"png", "fp", owner="bob",
                           timeout_s=90)  # fmt: skip
     assert store.get("c" * 32) == record
+
+
+def _finish_with(store: JobStore, job_id: str, result_json: str) -> None:
+    store.create(job_id, "demo-sat", "{}", 30, b"png", "fp", owner="bob", timeout_s=90)
+    assert store.finish(job_id, "succeeded", result_json=result_json)
+
+
+def test_a_result_is_stored_compressed_and_reads_back_whole(store: JobStore) -> None:
+    history = [{"iteration": i, "pose": {"t": [0.1 * i, -0.2, 14.0 + i / 7]}, "cost": i / 3}
+               for i in range(30)]  # fmt: skip
+    result_json = json.dumps({"iterations": 30, "history": history})
+    _finish_with(store, "d" * 32, result_json)
+    stored = store.r.hgetall(store.keys.job("d" * 32))
+    assert b"result" not in stored
+    assert zlib.decompress(stored[b"result_z"]).decode() == result_json
+    assert len(stored[b"result_z"]) < len(result_json) / 2
+    record = store.get("d" * 32)
+    assert record is not None and record.result == result_json
+
+
+def test_a_plain_result_of_an_older_deployment_still_reads(store: JobStore) -> None:
+    _finish_with(store, "e" * 32, "{}")
+    key = store.keys.job("e" * 32)
+    store.r.hdel(key, "result_z")
+    store.r.hset(key, "result", '{"iterations": 4}')  # how jobs were stored before
+    record = store.get("e" * 32)
+    assert record is not None and record.result == '{"iterations": 4}'
+    page, _cursor = store.list_page(10, None)
+    assert [job.result for job in page if job.id == "e" * 32] == ['{"iterations": 4}']
+
+
+def test_a_failed_job_keeps_only_the_end_of_a_long_traceback(store: JobStore) -> None:
+    store.create("f" * 32, "demo-sat", "{}", 30, b"png", "fp", owner="bob", timeout_s=90)
+    tb = "Traceback (most recent call last):\n" + "  frame\n" * 5000 + "ValueError: boom\n"
+    assert store.finish("f" * 32, "failed", traceback=tb)
+    kept = store.r.hget(store.keys.job("f" * 32), "traceback")
+    assert kept is not None and len(kept) == TRACEBACK_MAX_CHARS
+    assert kept.endswith(b"ValueError: boom\n")

@@ -50,8 +50,8 @@ API_KEY = "ui-test-key-0123456789abcdef"
 ARTIFACT_IMAGES = ("overlay_1", "overlay_2", "overlay_final", "difference", "final_render")
 
 
-@pytest.fixture(scope="module")
-def browser() -> Iterator[Any]:
+@pytest.fixture(scope="module", name="browser")
+def chromium_browser() -> Iterator[Any]:
     """Debian's Chromium driven by Playwright (no browser download): skipped when missing,
     unless PROXPOSE_REQUIRE_BROWSER=1."""
     if not CHROMIUM.is_file():
@@ -108,8 +108,8 @@ def open_tab(browser: Any, base_url: str) -> Tab:
     return tab
 
 
-@pytest.fixture
-def tab(browser: Any, stack: Stack) -> Iterator[Tab]:
+@pytest.fixture(name="tab")
+def browser_tab(browser: Any, stack: Stack) -> Iterator[Tab]:
     opened = open_tab(browser, str(stack.api.base_url))
     yield opened
     opened.page.context.close()

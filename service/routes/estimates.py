@@ -2,39 +2,40 @@
 
 from __future__ import annotations
 
-import hashlib
 import logging
-import re
 import secrets
 from typing import Annotated, Any
 
 from fastapi import APIRouter, File, Form, Header, Query, Request, Response, UploadFile
 from fastapi.responses import StreamingResponse
-from pydantic import ValidationError
 
 from schemas.jobs import EstimateCreate, EstimateList, EstimatePublic, JobStatus
 from schemas.models import MODEL_ID_PATTERN
-from schemas.names import BUILTIN_MODEL_IDS
 from schemas.settings import Settings
 from service.auth import PrincipalDep
 from service.deps import AsyncRedisDep, JobStoreDep, ModelStoreDep, Multipart, SettingsDep
-from service.errors import ApiError, echo, field_error, not_found, validation_failed
-from service.events import job_events
+from service.events import event_stream
 from service.resources import estimate_location, estimate_public, estimate_summary
-from service.store import ActiveJobsLimitError, JobRecord, JobStore, ModelStore, Reaper
-from service.uploads import UploadRejected, inspect_image
+from service.store import JobRecord, JobStore, Reaper
+from service.submissions import (
+    IdempotencyKey,
+    artifact_response,
+    cancel,
+    check_idempotency_key,
+    check_model,
+    create_or_refuse,
+    fingerprint_of,
+    get_or_404,
+    parse_request,
+    read_image,
+    replay,
+)
 
 router = APIRouter(prefix="/v1/estimates", tags=["estimates"])
 log = logging.getLogger(__name__)
 
 #: Largest page of a listing.
 MAX_PAGE_SIZE = 100
-#: Retry-After of a submission refused because the key's cap of active jobs is reached, s.
-ACTIVE_CAP_RETRY_AFTER_S = 15
-_JOB_ID = re.compile(r"^[0-9a-f]{32}$")
-#: Idempotency keys: 1–255 printable ASCII characters without spaces (a UUID is typical).
-_IDEMPOTENCY_KEY = re.compile(r"^[\x21-\x7e]{1,255}$")
-
 _REQUEST_EXAMPLE = (
     '{"model_id": "demo-sat", "camera": {"width": 512, "height": 512, "fx": 560, "fy": 560, '
     '"cx": 255.5, "cy": 255.5}, "initial_pose": {"t": [0.3, -0.2, 14.0], '
@@ -43,84 +44,7 @@ _REQUEST_EXAMPLE = (
 
 
 def _get_or_404(jobs: JobStore, job_id: str, settings: Settings) -> JobRecord:
-    """The caller's job (another key's job is as absent as a job that never existed)."""
-    record = jobs.get(job_id) if _JOB_ID.match(job_id) else None
-    if record is None:
-        raise not_found("estimate", job_id)
-    return Reaper(jobs, settings.job_max_attempts).reconcile(record)
-
-
-def _parse_request(part: str | UploadFile, max_bytes: int) -> EstimateCreate:
-    if isinstance(part, str):
-        text = part
-        if len(text.encode()) > max_bytes:
-            msg = f"the request JSON is larger than {max_bytes} bytes"
-            raise field_error(413, ("body", "request"), msg, "too_large")
-    else:  # sent as a file part (curl -F request=@request.json)
-        raw = part.file.read(max_bytes + 1)
-        if len(raw) > max_bytes:
-            msg = f"the request JSON is larger than {max_bytes} bytes"
-            raise field_error(413, ("body", "request"), msg, "too_large")
-        try:
-            text = raw.decode("utf-8")
-        except UnicodeDecodeError as exc:
-            raise field_error(422, ("body", "request"), "not UTF-8 text", "unicode_error") from exc
-    try:
-        return EstimateCreate.model_validate_json(text)
-    except ValidationError as exc:
-        raise validation_failed(exc, ("body", "request")) from exc
-
-
-def _check_model(models: ModelStore, model_id: str) -> None:
-    # demo-sat and demo-terrain are accepted before any worker registered them: the worker that
-    # runs the job will have
-    if model_id not in BUILTIN_MODEL_IDS and not models.exists(model_id):
-        raise field_error(
-            422,
-            ("body", "request", "model_id"),
-            f"no model '{model_id}' is registered (see GET /v1/models)",
-            "model_not_found",
-        )
-
-
-def _read_image(image: UploadFile, body: EstimateCreate, max_bytes: int, max_px: int) -> bytes:
-    if image.size is not None and image.size > max_bytes:
-        msg = f"the image is {image.size} bytes, larger than the limit of {max_bytes} bytes"
-        raise field_error(413, ("body", "image"), msg, "too_large")
-    data = image.file.read(max_bytes + 1)
-    if len(data) > max_bytes:
-        msg = f"the image is larger than the limit of {max_bytes} bytes"
-        raise field_error(413, ("body", "image"), msg, "too_large")
-    try:
-        info = inspect_image(data, max_px)
-    except UploadRejected as exc:
-        raise field_error(422, ("body", "image"), str(exc), exc.code) from exc
-    cam = body.camera
-    if (info.width, info.height) != (cam.width, cam.height):
-        msg = (
-            f"the image is {info.width}×{info.height} px but request.camera is "
-            f"{cam.width}×{cam.height} px"
-        )
-        raise field_error(422, ("body", "image"), msg, "image_size_mismatch")
-    return data
-
-
-def _replay(earlier: dict[str, str], fingerprint: str, jobs: JobStore) -> JobRecord:
-    if earlier["fingerprint"] != fingerprint:
-        raise field_error(
-            422,
-            ("header", "Idempotency-Key"),
-            "this key was already used with a different request; use a new key per request",
-            "idempotency_key_reused",
-        )
-    record = jobs.get(earlier["job_id"])
-    if record is None:
-        raise ApiError(
-            409,
-            detail="a request with this Idempotency-Key is still being processed; retry",
-            code="idempotency_in_progress",
-        )
-    return record
+    return get_or_404(jobs, job_id, settings, "estimate")
 
 
 @router.post(
@@ -159,38 +83,25 @@ def create_estimate(
     settings: SettingsDep,
     principal: PrincipalDep,
     response: Response,
-    idempotency_key: Annotated[
-        str | None,
-        Header(alias="Idempotency-Key", description="Makes retries safe (e.g. a UUID)."),
-    ] = None,
+    idempotency_key: IdempotencyKey = None,
 ) -> EstimatePublic:
-    if idempotency_key is not None and not _IDEMPOTENCY_KEY.match(idempotency_key):
-        raise field_error(
-            422,
-            ("header", "Idempotency-Key"),
-            "must be 1 to 255 printable ASCII characters without spaces",
-            "string_pattern_mismatch",
-        )
-    body = _parse_request(request, settings.max_request_json_bytes)
-    _check_model(models, body.model_id)
-    data = _read_image(image, body, settings.max_image_bytes, settings.max_image_pixels)
+    check_idempotency_key(idempotency_key)
+    body = parse_request(request, settings.max_request_json_bytes, EstimateCreate)
+    check_model(models, body.model_id)
+    data = read_image(image, body.camera, settings.max_image_bytes, settings.max_image_pixels)
     engine_request = body.engine_request()
     request_json = engine_request.model_dump_json(exclude_unset=True, by_alias=True)
-    fingerprint = hashlib.sha256(
-        b"\0".join([body.model_id.encode(), request_json.encode(), data])
-    ).hexdigest()
+    fingerprint = fingerprint_of(body.model_id.encode(), request_json.encode(), data)
     job_id = secrets.token_hex(16)  # 128 random bits: ids cannot be guessed
     owner = principal.name
-    if idempotency_key is not None:
-        earlier = jobs.claim_idempotency(owner, idempotency_key, job_id, fingerprint)
-        if earlier is not None:
-            record = _replay(earlier, fingerprint, jobs)
-            response.headers["Location"] = estimate_location(record.id)
-            response.headers["Idempotent-Replayed"] = "true"
-            return estimate_public(Reaper(jobs, settings.job_max_attempts).reconcile(record))
+    earlier = replay(jobs, owner, idempotency_key, job_id, fingerprint)
+    if earlier is not None:
+        response.headers["Location"] = estimate_location(earlier.id)
+        response.headers["Idempotent-Replayed"] = "true"
+        return estimate_public(Reaper(jobs, settings.job_max_attempts).reconcile(earlier))
     max_iterations = engine_request.options.resolved().max_iterations
-    try:
-        record = jobs.create(
+    record = create_or_refuse(
+        lambda: jobs.create(
             job_id,
             body.model_id,
             request_json,
@@ -200,19 +111,11 @@ def create_estimate(
             owner=owner,
             timeout_s=settings.job_timeout_s,
             max_active=settings.max_active_jobs_per_key,
-        )
-    except BaseException as exc:
-        if idempotency_key is not None:
-            jobs.release_idempotency(owner, idempotency_key)
-        if isinstance(exc, ActiveJobsLimitError):
-            raise ApiError(
-                429,
-                detail=f"{exc}, the most allowed (max_active_jobs_per_key); wait for some to "
-                "finish or cancel some",
-                code="active_jobs_limit",
-                headers={"Retry-After": str(ACTIVE_CAP_RETRY_AFTER_S)},
-            ) from exc
-        raise
+        ),
+        jobs,
+        owner,
+        idempotency_key,
+    )
     log.info(
         "estimate %s queued for '%s' (model %s)",
         job_id,
@@ -286,27 +189,7 @@ def get_estimate(job_id: str, jobs: JobStoreDep, settings: SettingsDep) -> Estim
 def cancel_estimate(
     job_id: str, jobs: JobStoreDep, settings: SettingsDep, response: Response
 ) -> EstimatePublic:
-    record = _get_or_404(jobs, job_id, settings)
-    after = None if record.terminal else jobs.request_cancel(job_id)
-    if after is None or after.status in ("succeeded", "failed"):
-        status = (after or record).status
-        raise ApiError(
-            409, detail=f"estimate '{job_id}' has already ended ({status})", code="job_ended"
-        )
-    if after.status != "cancelled":
-        response.status_code = 202
-    return estimate_public(after)
-
-
-#: Cache-Control of an artifact: its URL names one job's output, which never changes.
-ARTIFACT_CACHE_CONTROL = "private, max-age=86400, immutable"
-
-
-def _etag_matches(if_none_match: str | None, etag: str) -> bool:
-    if if_none_match is None:
-        return False
-    tags = {t.strip().removeprefix("W/") for t in if_none_match.split(",")}
-    return "*" in tags or etag in tags
+    return estimate_public(cancel(jobs, _get_or_404(jobs, job_id, settings), response))
 
 
 @router.get(
@@ -326,23 +209,7 @@ def get_artifact(
     job_id: str, name: str, request: Request, jobs: JobStoreDep, settings: SettingsDep
 ) -> Response:
     record = _get_or_404(jobs, job_id, settings)
-    stem = name.removesuffix(".png")
-    headers = {"Cache-Control": ARTIFACT_CACHE_CONTROL}
-    known = jobs.artifact_etag(record, stem)
-    if known is not None and _etag_matches(request.headers.get("if-none-match"), f'"{known}"'):
-        return Response(status_code=304, headers=headers | {"ETag": f'"{known}"'})
-    png = jobs.get_artifact(record, stem)
-    if png is None:
-        names = ", ".join(record.artifacts) or "none yet"
-        raise ApiError(
-            404,
-            detail=f"estimate '{job_id}' has no artifact '{echo(name)}' (artifacts: {names})",
-            code="not_found",
-        )
-    etag = f'"{known or hashlib.sha256(png).hexdigest()}"'
-    if _etag_matches(request.headers.get("if-none-match"), etag):
-        return Response(status_code=304, headers=headers | {"ETag": etag})
-    return Response(png, media_type="image/png", headers=headers | {"ETag": etag})
+    return artifact_response(jobs, record, name.removesuffix(".png"), request, "image/png")
 
 
 _EVENTS_DOC: dict[int | str, dict[str, Any]] = {
@@ -376,11 +243,4 @@ def stream_events(
     ] = None,
 ) -> StreamingResponse:
     _get_or_404(jobs, job_id, settings)
-    after = int(last_event_id) if last_event_id and last_event_id.isdigit() else 0
-    return StreamingResponse(
-        job_events(
-            jobs, aredis, job_id, settings.sse_keepalive_s, settings.job_max_attempts, after
-        ),
-        media_type="text/event-stream",
-        headers={"Cache-Control": "no-cache", "X-Accel-Buffering": "no"},
-    )
+    return event_stream(jobs, aredis, job_id, settings, last_event_id)

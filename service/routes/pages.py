@@ -1,4 +1,5 @@
-"""The browser pages: ``/`` (estimates and the submit form), ``/estimates/{id}``, ``/models``.
+"""The browser pages: ``/`` (estimates and the submit form), ``/estimates/{id}``,
+``/tracks/{id}``, ``/models``.
 
 The HTML is a server-rendered frame (layout, forms, labels, empty tables); the pages' scripts
 (``service/static/*.js``) fill it from the JSON API under ``/v1``, so the pages and every other
@@ -78,20 +79,26 @@ def estimates_page(request: Request) -> HTMLResponse:
     return _page(request, "index.html", page="estimates", title="Estimates", script="index.js")
 
 
-@router.get("/estimates/{job_id}", response_class=HTMLResponse)
-def estimate_page(request: Request, job_id: str) -> HTMLResponse:
+def _job_page(request: Request, job_id: str, noun: str, name: str) -> HTMLResponse:
+    """The page of one job: template and script ``name`` (.html, .js), or a 404 page."""
     if not _JOB_ID.match(job_id):
-        response = _page(request, "missing.html", page="", title="No such estimate", what=job_id)
+        response = _page(request, "missing.html", page="", title=f"No such {noun}", what=job_id)
         response.status_code = 404
         return response
+    title = f"{noun.capitalize()} {job_id[:8]}"
     return _page(
-        request,
-        "estimate.html",
-        page="estimate",
-        title=f"Estimate {job_id[:8]}",
-        script="estimate.js",
-        job_id=job_id,
+        request, f"{name}.html", page=name, title=title, script=f"{name}.js", job_id=job_id
     )
+
+
+@router.get("/estimates/{job_id}", response_class=HTMLResponse)
+def estimate_page(request: Request, job_id: str) -> HTMLResponse:
+    return _job_page(request, job_id, "estimate", "estimate")
+
+
+@router.get("/tracks/{job_id}", response_class=HTMLResponse)
+def track_page(request: Request, job_id: str) -> HTMLResponse:
+    return _job_page(request, job_id, "track", "track")
 
 
 @router.get("/favicon.ico", response_class=FileResponse)

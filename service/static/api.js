@@ -69,10 +69,11 @@ export function jsonUrl(value) {
 
 /**
  * Read the text/event-stream at ``path``, calling ``onEvent(name, data)`` per event, until the
- * server closes it or ``signal`` aborts. Resolves when the stream ends.
+ * server closes it or ``signal`` aborts. Resolves when the stream ends. ``headers``: more
+ * request headers (a reconnecting reader's Last-Event-ID).
  */
-export async function readEvents(path, onEvent, signal) {
-  const response = await apiFetch(path, { signal, headers: { Accept: "text/event-stream" } });
+export async function readEvents(path, onEvent, signal, headers = {}) {
+  const response = await apiFetch(path, { signal, headers: { Accept: "text/event-stream", ...headers } });
   const reader = response.body.pipeThrough(new TextDecoderStream()).getReader();
   let buffer = "";
   for (;;) {

@@ -1,18 +1,16 @@
 // "/estimates/{id}": one estimate. While it runs, its progress streams in (SSE) with a live cost
 // plot; once it ends, the result (result.js) or the error in words.
 
-import { ApiError, apiFetch, apiJson, notice, readEvents } from "./api.js";
+import { notice } from "./api.js";
 import { ACTIVE, ERROR_HINTS, badge, el, elapsed, num, seconds, timeElement } from "./format.js";
+import { followJob, loadJob, showFailure as failed, showStatus as setStatus, wireCancel } from "./job.js";
 import { plot } from "./plots.js";
 import { showResult } from "./result.js";
 
 const $ = (id) => document.getElementById(id);
 const jobId = $("estimate").dataset.jobId;
-const RETRY_MS = 2000;
-const POLL_MS = 3000;
-const STREAM_RETRIES = 5;
 
-const live = { points: [], controller: null, ended: false };
+const live = { points: [], ended: false };
 
 function showFacts(job) {
   const method = (job.request && job.request.options && job.request.options.method) || "default";
@@ -28,10 +26,7 @@ function showFacts(job) {
 }
 
 function showStatus(status, cancelRequested = false) {
-  const node = $("status");
-  node.className = `badge ${status}`;
-  node.textContent = cancelRequested && status === "running" ? "running (stopping)" : status;
-  document.title = `${status} · Estimate ${jobId.slice(0, 8)} · proxpose`;
+  setStatus($("status"), "Estimate", jobId, status, cancelRequested);
 }
 
 function progressText(status, progress) {
@@ -63,15 +58,7 @@ function showProgress(status, progress) {
 }
 
 function showFailure(job) {
-  $("failure").hidden = false;
-  const error = job.error || (job.status === "cancelled"
-    ? { code: "cancelled", message: "This estimate was cancelled before it finished." }
-    : { code: "unknown", message: `The estimate ended as ${job.status}.` });
-  $("failure-title").textContent = job.status === "cancelled"
-    ? "The estimate was cancelled" : "The estimate failed";
-  $("failure-message").textContent = error.message;
-  $("failure-hint").textContent = ERROR_HINTS[error.code] || "";
-  $("failure-code").textContent = error.code;
+  failed(job, "estimate", "This estimate was cancelled before it finished.", ERROR_HINTS);
 }
 
 function show(job) {
@@ -90,20 +77,7 @@ function show(job) {
 
 // ------------------------------------------------------------------ following a running job
 async function follow() {
-  for (let attempt = 0; attempt < STREAM_RETRIES && !live.ended; attempt++) {
-    live.controller = new AbortController();
-    try {
-      await readEvents(`/v1/estimates/${jobId}/events`, onEvent, live.controller.signal);
-    } catch (error) {
-      if (live.ended || error.name === "AbortError") return;
-      if (error instanceof ApiError && error.status < 500) throw error;
-    }
-    if (!live.ended) await new Promise((resolve) => setTimeout(resolve, RETRY_MS));
-  }
-  while (!live.ended) { // the stream keeps failing (a proxy?): poll instead
-    show(await apiJson(`/v1/estimates/${jobId}`));
-    await new Promise((resolve) => setTimeout(resolve, POLL_MS));
-  }
+  await followJob(`/v1/estimates/${jobId}`, { onEvent, show, ended: () => live.ended });
 }
 
 function onEvent(name, data) {
@@ -118,33 +92,10 @@ function onEvent(name, data) {
   }
 }
 
-async function cancel() {
-  $("cancel").disabled = true;
-  try {
-    show(await (await apiFetch(`/v1/estimates/${jobId}`, { method: "DELETE" })).json());
-  } catch (error) {
-    notice(`Could not cancel: ${error.message}`);
-  }
-}
-
 async function main() {
-  $("cancel").addEventListener("click", cancel);
-  let job;
-  try {
-    job = await apiJson(`/v1/estimates/${jobId}`);
-  } catch (error) {
-    if (error instanceof ApiError && error.status === 404) {
-      showStatus("missing");
-      $("failure").hidden = false;
-      $("failure-title").textContent = "No such estimate";
-      $("failure-message").textContent =
-        "There is no estimate with this id: it never existed or it expired (finished estimates " +
-        "are kept for the service's retention time).";
-      $("failure-code").textContent = "not_found";
-      return;
-    }
-    throw error;
-  }
+  wireCancel($("cancel"), `/v1/estimates/${jobId}`, show);
+  const job = await loadJob(`/v1/estimates/${jobId}`, "estimate", jobId);
+  if (!job) return;
   show(job);
   if (ACTIVE.has(job.status)) await follow();
 }

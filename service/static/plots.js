@@ -62,7 +62,8 @@ function wantsLog(points, log) {
   return ys.length > 0 && ys.every((y) => y > 0) && Math.max(...ys) / Math.min(...ys) > LOG_SPAN;
 }
 
-function yScale(values, log) {
+/** The y axis; a linear one starts at 0 when ``zero``, else it spans the values (a range). */
+function yScale(values, log, zero = true) {
   let lo = Math.min(...values);
   let hi = Math.max(...values);
   if (log) {
@@ -72,7 +73,11 @@ function yScale(values, log) {
     const f = (v) => (Math.log10(hi) - Math.log10(v)) / (Math.log10(hi) - Math.log10(lo));
     return { log, ticks: logTicks(lo, hi), at: (v) => M.top + f(v) * (H - M.top - M.bottom) };
   }
-  lo = Math.min(0, lo);
+  if (!zero) {
+    const pad = (hi - lo) * 0.1 || Math.abs(hi) * 0.05 || 1;
+    lo -= pad;
+    hi += pad;
+  } else lo = Math.min(0, lo);
   hi = hi > lo ? hi + (hi - lo) * 0.06 : lo + 1;
   const f = (v) => (hi - v) / (hi - lo);
   return { log, ticks: linearTicks(lo, hi), at: (v) => M.top + f(v) * (H - M.top - M.bottom) };
@@ -85,8 +90,9 @@ function cross(x, y, r) {
 /**
  * A <figure> plotting ``points`` ({x, y, accepted, stage, tip}) of one quantity.
  * ``log``: true, false or "auto". ``summary``: a sentence for screen readers and the caption.
+ * ``xLabel``: what x counts ("iteration", whose 0 is the initial guess, or "frame").
  */
-export function plot({ name, title, unit, points, log = "auto", summary = "" }) {
+export function plot({ name, title, unit, points, log = "auto", summary = "", xLabel = "iteration", zero = true }) {
   const id = `plot-${++plotCount}`;
   const finite = points.filter((p) => Number.isFinite(p.y));
   const useLog = wantsLog(finite, log);
@@ -105,10 +111,11 @@ export function plot({ name, title, unit, points, log = "auto", summary = "" }) 
   caption.textContent = title;
   figure.append(caption, root);
   if (left.length) {
-    const which = left.map((p) => (p.x === 0 ? "the initial guess" : p.x)).join(", ");
+    const init = xLabel === "iteration" ? "the initial guess" : "0";
+    const which = left.map((p) => (p.x === 0 ? init : p.x)).join(", ");
     const note = document.createElement("p");
     note.className = "hint";
-    note.textContent = `Not on the log scale (value 0): iteration ${which}.`;
+    note.textContent = `Not on the log scale (value 0): ${xLabel} ${which}.`;
     figure.append(note);
   }
   if (!data.length) return figure;
@@ -117,7 +124,7 @@ export function plot({ name, title, unit, points, log = "auto", summary = "" }) 
   const x0 = Math.min(...xs);
   const x1 = Math.max(x0 + 1, ...xs);
   const X = (x) => M.left + ((x - x0 + 0.5) / (x1 - x0 + 1)) * (W - M.left - M.right);
-  const Y = yScale(data.map((p) => p.y), useLog);
+  const Y = yScale(data.map((p) => p.y), useLog, zero);
   const bottom = H - M.bottom;
 
   const coarse = finite.filter((p) => p.stage === "coarse").map((p) => p.x);
@@ -135,11 +142,11 @@ export function plot({ name, title, unit, points, log = "auto", summary = "" }) 
   const step = Math.max(1, Math.ceil((x1 - x0 + 1) / 10));
   for (let x = x0; x <= x1; x += step) {
     root.append(svg("line", { x1: X(x), x2: X(x), y1: bottom, y2: bottom + 4, class: "axis" }));
-    root.append(svg("text", { x: X(x), y: bottom + 16, class: "tick x" }, x === 0 ? "init" : x));
+    root.append(svg("text", { x: X(x), y: bottom + 16, class: "tick x" }, x === 0 && xLabel === "iteration" ? "init" : x));
   }
   root.append(svg("line", { x1: M.left, x2: W - M.right, y1: bottom, y2: bottom, class: "axis" }));
   root.append(svg("line", { x1: M.left, x2: M.left, y1: M.top, y2: bottom, class: "axis" }));
-  root.append(svg("text", { x: (M.left + W - M.right) / 2, y: H - 6, class: "label" }, "iteration"));
+  root.append(svg("text", { x: (M.left + W - M.right) / 2, y: H - 6, class: "label" }, xLabel));
   const yLabel = `${Y.log ? "log scale, " : ""}${unit}`;
   root.append(svg("text", {
     x: -(M.top + bottom) / 2, y: 14, transform: "rotate(-90)", class: "label",

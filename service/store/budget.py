@@ -1,8 +1,9 @@
 """Redis memory: what it uses, its limit, and the warning when it has none.
 
-With the blobs in the blob store, a finished estimate costs Redis a few kB (its hash: the
-request and the result JSON); README "Blob storage" has the measured figure. Redis without
-``maxmemory`` grows until the machine runs out, so the API and the workers warn at start.
+With the blobs in the blob store, a finished estimate costs Redis about 8 kB (its hash: the
+request and the result JSON, compressed); README "Blob storage" has the measured figure.
+Redis without ``maxmemory`` grows until the machine runs out, so the API and the workers warn
+at start.
 """
 
 from __future__ import annotations

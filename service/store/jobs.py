@@ -1,4 +1,5 @@
-"""Estimate jobs in Redis: one hash per job, indexes for listing, the image, the artifacts.
+"""Jobs in Redis (estimates, tracks): one hash per job, indexes for listing, the inputs (an
+image, a track's frames), the artifacts.
 
 The bytes are not in Redis: the image and the artifacts are blobs (``service.store.blobs``),
 written before the Redis change that refers to them, so that nothing refers to a blob that is
@@ -32,18 +33,23 @@ from service.store.access import Principal
 from service.store.blobs.base import (
     BlobStore,
     BlobStoreError,
+    artifact_media_type,
     job_artifact_name,
     job_image_name,
+    job_input_name,
 )
 from service.store.keys import Keys
 from service.store.queues import Queues
-from service.store.records import JobRecord, text, utc_now
+from service.store.records import RESULT_Z_FIELD, JobRecord, pack_result, text, utc_now
 from service.store.transitions import Current, Transitions
 
 log = logging.getLogger(__name__)
 
 #: Positions scanned at most to fill one listing page (expired jobs are skipped and pruned).
 LIST_SCAN_MAX = 1000
+#: Characters of a failed job's traceback kept in its hash (the end: the raising frames and the
+#: exception); a deep one would otherwise be most of the job's Redis memory.
+TRACEBACK_MAX_CHARS = 4000
 #: States in which a job counts against its owner's cap and may still change.
 ACTIVE_STATUSES = ("queued", "running")
 #: Reserve a place among the owner's active jobs (KEYS[1]) for job ARGV[1] unless ARGV[2] > 0
@@ -64,9 +70,26 @@ class ActiveJobsLimitError(Exception):
         self.limit = limit
 
 
+def _queued(
+    job_id: str, model_id: str, request_json: str, max_iterations: int, fingerprint: str, owner: str
+) -> JobRecord:
+    """A new job's record (its sequence number and RQ id are given when it is stored)."""
+    return JobRecord(
+        id=job_id,
+        status="queued",
+        model_id=model_id,
+        created_at=utc_now(),
+        request=request_json,
+        seq=0,
+        max_iterations=max_iterations,
+        owner=owner,
+        fingerprint=fingerprint,
+    )
+
+
 class JobStore:
-    """Reads and writes estimate jobs. ``r`` is a bytes-returning Redis client; ``blobs`` holds
-    the images and artifacts (needed by the methods that read or write those)."""
+    """Reads and writes jobs (of each kind, ``JobRecord.kind``). ``r`` is a bytes-returning
+    Redis client; ``blobs`` holds the inputs and artifacts (for the methods that use them)."""
 
     def __init__(
         self,
@@ -114,41 +137,61 @@ class JobStore:
         call, so concurrent submissions can neither overshoot the cap nor make each other
         retry (a WATCH on the shared set did: 50 at once took ~0.2 s each); the job itself is
         then written and enqueued in one MULTI transaction."""
+        record = _queued(job_id, model_id, request_json, max_iterations, fingerprint, owner)
+        record.timeout_s, record.image_blob = timeout_s, job_image_name(job_id)
+        return self._create(record, {job_image_name(job_id): image}, max_active)
+
+    def create_track(
+        self,
+        job_id: str,
+        model_id: str,
+        request_json: str,
+        frames: Sequence[tuple[str, bytes]],
+        fingerprint: str,
+        *,
+        owner: str,
+        timeout_s: int,
+        max_active: int = 0,
+    ) -> JobRecord:
+        """Store a new queued track job with its frames ((file name, bytes), in order) and
+        enqueue it, like :meth:`create` (its progress counts frames)."""
+        inputs = [
+            {"name": name, "blob": job_input_name(job_id, k)}
+            for k, (name, _data) in enumerate(frames)
+        ]
+        record = _queued(job_id, model_id, request_json, len(frames), fingerprint, owner)
+        record.timeout_s, record.kind, record.inputs = timeout_s, "track", inputs
+        blobs = {ref["blob"]: data for ref, (_name, data) in zip(inputs, frames, strict=True)}
+        return self._create(record, blobs, max_active)
+
+    def _create(self, record: JobRecord, inputs: dict[str, bytes], max_active: int) -> JobRecord:
+        """Reserve the owner's place, write the inputs, then the record and its queue entry
+        in one transaction; on any failure, undo what was done."""
+        job_id, owner = record.id, record.owner
         active = self.keys.owner_active(owner)
         seq = int(self._reserve(keys=[active, self.keys.jobs_seq], args=[job_id, max_active]))
         if seq < 0:
             raise ActiveJobsLimitError(max_active)
-        rq_id = Queues.estimate_rq_id(job_id, 1)
-        record = JobRecord(
-            id=job_id,
-            status="queued",
-            model_id=model_id,
-            created_at=utc_now(),
-            request=request_json,
-            seq=seq,
-            max_iterations=max_iterations,
-            owner=owner,
-            rq_id=rq_id,
-            timeout_s=timeout_s,
-            fingerprint=fingerprint,
-            image_blob=job_image_name(job_id),
-        )
-        written = False
+        record.seq = seq
+        record.rq_id = Queues.estimate_rq_id(job_id, 1)
+        written: list[str] = []
         try:
-            self.blobs.put(job_image_name(job_id), image)
-            written = True
+            for name, data in inputs.items():
+                self.blobs.put(name, data)
+                written.append(name)
             with self.r.pipeline(transaction=True) as pipe:
                 pipe.multi()  # explicit: RQ's enqueue checks for it
                 pipe.hset(self.keys.job(job_id), mapping=record.queued_hash())  # type: ignore[arg-type]
-                pipe.zadd(self.keys.jobs_index, {job_id: seq})
-                pipe.zadd(self.keys.owner_jobs(owner), {job_id: seq})
+                pipe.zadd(self.keys.kind_index(record.kind), {job_id: seq})
+                pipe.zadd(self.keys.owner_jobs(owner, record.kind), {job_id: seq})
                 pipe.sadd(self.keys.jobs_queued, job_id)
-                self.queues.enqueue_estimate(pipe, job_id, rq_id, timeout_s)
+                self.queues.enqueue_estimate(
+                    pipe, job_id, record.rq_id, record.timeout_s, kind=record.kind
+                )
                 pipe.execute()
         except BaseException:
             self.r.srem(active, job_id)  # give the reserved place back
-            if written:
-                self._forget_blobs([job_image_name(job_id)])
+            self._forget_blobs(written)
             raise
         return record
 
@@ -166,13 +209,17 @@ class JobStore:
             return self.blobs.get(record.image_blob)
         return self.r.get(self.keys.job_image(record.id))  # type: ignore[return-value]
 
+    def get_input(self, record: JobRecord, index: int) -> bytes | None:
+        """Input ``index`` of a job of several inputs (None once the job has ended)."""
+        return self.blobs.get(record.inputs[index]["blob"])
+
     def artifact_etag(self, record: JobRecord, name: str) -> str | None:
         """The SHA-256 of an artifact, known without reading it (None for an older job's)."""
         ref = record.artifact_blobs.get(name)
         return str(ref["sha256"]) if ref else None
 
     def get_artifact(self, record: JobRecord, name: str) -> bytes | None:
-        """An artifact's PNG; None if the job has no such artifact or its blob is gone."""
+        """An artifact's bytes; None if the job has no such artifact or its blob is gone."""
         if name not in record.artifacts:
             return None
         ref = record.artifact_blobs.get(name)
@@ -185,14 +232,15 @@ class JobStore:
         limit: int,
         before_seq: int | None,
         where: Callable[[JobRecord], bool] | None = None,
+        kind: str = "estimate",
     ) -> tuple[list[JobRecord], int | None]:
         """Up to ``limit`` jobs, newest first, created before ``before_seq`` (and for which
         ``where`` holds); and the cursor of the next page (None on the last). A page scans at
         most LIST_SCAN_MAX index entries: a sparse filter may give a short page with a cursor.
         Index entries of expired jobs are pruned on the way."""
-        index = self.keys.jobs_index
+        index = self.keys.kind_index(kind)
         if self.viewer is not None and not self.viewer.admin:
-            index = self.keys.owner_jobs(self.viewer.name)
+            index = self.keys.owner_jobs(self.viewer.name, kind)
         found: list[JobRecord] = []
         upper = f"({before_seq}" if before_seq is not None else "+inf"
         scanned, exhausted, last_seq = 0, False, None
@@ -267,16 +315,17 @@ class JobStore:
         and nothing changes); after the change the image blob goes, or, when the change was
         refused, the artifacts just written."""
         refs = self._put_artifacts(job_id, attempt, artifacts or {})
-        fields = {"status": status, "finished_at": utc_now()}
+        fields: dict[str, str | bytes] = {"status": status, "finished_at": utc_now()}
         if error is not None:
             fields["error"] = error.model_dump_json()
         if result_json is not None:
-            fields["result"] = result_json
+            fields[RESULT_Z_FIELD] = pack_result(result_json)
         if artifacts:
             fields["artifacts"] = json.dumps(list(artifacts))
             fields["artifact_blobs"] = json.dumps(refs)
         if traceback:
-            fields["traceback"] = traceback  # for operators (redis-cli); never served
+            # for operators (redis-cli; an internal error's whole one is in the worker's log)
+            fields["traceback"] = traceback[-TRACEBACK_MAX_CHARS:]
 
         def guard(current: Current, pipe: Pipeline) -> bool:
             if current["status"] not in from_statuses:
@@ -290,23 +339,29 @@ class JobStore:
 
         done = self.transitions.apply(job_id, guard, fields, extra, expire=True) is not None
         if done:
-            self._forget_blobs([job_image_name(job_id)])
+            self._forget_blobs(self._input_blobs(job_id))
             self.publish(job_id, "status", {"status": status})
         else:
             self._forget_blobs([str(ref["blob"]) for ref in refs.values()])
         return done
 
+    def _input_blobs(self, job_id: str) -> list[str]:
+        """The blobs of a job's inputs: its image, or its frames."""
+        raw = self.r.hget(self.keys.job(job_id), "inputs")
+        frames = [str(ref["blob"]) for ref in json.loads(raw)] if raw else []  # type: ignore[arg-type]
+        return [job_image_name(job_id), *frames]
+
     def _put_artifacts(
         self, job_id: str, attempt: int | None, artifacts: dict[str, bytes]
     ) -> dict[str, dict[str, object]]:
         refs: dict[str, dict[str, object]] = {}
-        for name, png in artifacts.items():
+        for name, data in artifacts.items():
             blob = job_artifact_name(job_id, attempt if attempt is not None else 0, name)
-            self.blobs.put(blob, png, "image/png")
+            self.blobs.put(blob, data, artifact_media_type(name))
             refs[name] = {
                 "blob": blob,
-                "sha256": hashlib.sha256(png).hexdigest(),
-                "bytes": len(png),
+                "sha256": hashlib.sha256(data).hexdigest(),
+                "bytes": len(data),
             }
         return refs
 

@@ -40,8 +40,14 @@ class Keys:
 
     @property
     def jobs_index(self) -> str:
-        """Sorted set: job ids scored by a creation sequence number (newest = highest)."""
+        """Sorted set: estimate job ids scored by a creation sequence number (newest =
+        highest)."""
         return f"{self.prefix}:jobs"
+
+    def kind_index(self, kind: str) -> str:
+        """Sorted set: the ids of the jobs of ``kind`` ('estimate', 'track'), scored like
+        ``jobs_index`` (which is the estimates')."""
+        return self.jobs_index if kind == "estimate" else f"{self.prefix}:jobs:{kind}"
 
     @property
     def jobs_seq(self) -> str:
@@ -73,9 +79,10 @@ class Keys:
         return f"{self.prefix}:idempotency:{owner}:{key}"
 
     # -- per owner (API key name)
-    def owner_jobs(self, owner: str) -> str:
-        """Sorted set: the owner's job ids scored like ``jobs_index``."""
-        return f"{self.prefix}:owner:{owner}:jobs"
+    def owner_jobs(self, owner: str, kind: str = "estimate") -> str:
+        """Sorted set: the owner's job ids of ``kind`` scored like ``jobs_index``."""
+        tail = "" if kind == "estimate" else f":{kind}"
+        return f"{self.prefix}:owner:{owner}:jobs{tail}"
 
     def owner_active(self, owner: str) -> str:
         """Set: the owner's queued and running job ids (the per-key cap counts them)."""

@@ -26,9 +26,10 @@ from __future__ import annotations
 import json
 import logging
 
+from pydantic import BaseModel
 from redis.client import Pipeline
 
-from schemas.jobs import JobError, Progress
+from schemas.jobs import JobError
 from service.store.jobs import JobStore
 from service.store.queues import Queues
 from service.store.records import JobRecord, utc_now
@@ -134,12 +135,17 @@ class Leases:
         (status, attempts), cancel = pipe.execute()
         return status == b"running" and attempts == str(attempt).encode(), bool(cancel)
 
-    def set_progress(self, job_id: str, attempt: int, progress: Progress) -> bool:
-        """Store and publish the progress; False (nothing written) if the attempt is stale."""
-        data = progress.model_dump(mode="json")
-        event = json.dumps({"event": "progress", "data": data})
+    def set_progress(
+        self, job_id: str, attempt: int, progress: BaseModel, event: BaseModel | None = None
+    ) -> bool:
+        """Store the progress and publish it (or ``event``, when what is stored is more than
+        what a listener needs: a track stores all its frames so far, its event carries one);
+        False (nothing written) if the attempt is stale."""
+        data = progress.model_dump_json()
+        published = (event or progress).model_dump(mode="json")
+        message = json.dumps({"event": "progress", "data": published})
         keys = [self.keys.job(job_id), self.keys.job_events(job_id)]
-        return bool(self._progress(keys=keys, args=[attempt, json.dumps(data), event]))
+        return bool(self._progress(keys=keys, args=[attempt, data, message]))
 
 
 class Reaper:
@@ -200,7 +206,9 @@ class Reaper:
                 pipe.srem(self.keys.jobs_running, job_id)
                 pipe.sadd(self.keys.jobs_queued, job_id)
                 timeout_s = int(current["timeout_s"] or 0) or DEFAULT_TIMEOUT_S
-                queues.enqueue_estimate(pipe, job_id, verdict["rq_id"], timeout_s, at_front=True)
+                queues.enqueue_estimate(
+                    pipe, job_id, verdict["rq_id"], timeout_s, at_front=True, kind=current["kind"]
+                )
             else:
                 pipe.expire(self.keys.job(job_id), self.store.retention_s)
                 self.store.transitions.release(pipe, job_id, current)
@@ -217,7 +225,7 @@ class Reaper:
         self.store.publish(job_id, "status", {"status": "queued" if verdict["rq_id"] else outcome})
         if outcome != "requeued":
             code = "worker_lost" if outcome == "failed" else None
-            JobStats(self.store.r, self.keys).count("estimate", outcome, code)
+            JobStats(self.store.r, self.keys).count(before["kind"] or "estimate", outcome, code)
         return outcome
 
     def _verdict(self, job_id: str, current: Current) -> tuple[str, dict[str, str]]:
@@ -284,7 +292,9 @@ class Reaper:
             queues = self.store.queues
             queues.forget_estimate(pipe, rq_id)
             timeout_s = int(current["timeout_s"] or 0) or DEFAULT_TIMEOUT_S
-            queues.enqueue_estimate(pipe, job_id, new_rq_id, timeout_s, at_front=True)
+            queues.enqueue_estimate(
+                pipe, job_id, new_rq_id, timeout_s, at_front=True, kind=current["kind"]
+            )
 
         done = self.store.transitions.apply(job_id, guard, {"rq_id": new_rq_id}, extra) is not None
         if done:

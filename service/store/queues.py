@@ -26,6 +26,9 @@ from service.store.keys import Keys
 #: resolve: see worker/jobs/__init__.py).
 ESTIMATE_JOB = "worker.jobs.estimate.run_estimate_job"
 RENDER_JOB = "worker.jobs.render.run_render_job"
+TRACK_JOB = "worker.jobs.track.run_track_job"
+#: The job function of each kind of stored job (all on the estimate queue).
+JOB_FUNCTIONS = {"estimate": ESTIMATE_JOB, "track": TRACK_JOB}
 #: How long RQ keeps its own record of a failed job (ours lives in the job hash), s.
 RQ_FAILURE_TTL_S = 24 * 3600
 #: RQ's own timeout of an estimate is this much longer than the job's: the job stops itself at
@@ -65,18 +68,26 @@ class Queues:
         return {w.decode() for w in waiting} | {s.decode().split(":", 1)[0] for s in started}
 
     def enqueue_estimate(
-        self, pipe: Pipeline, job_id: str, rq_id: str, timeout_s: int, at_front: bool = False
+        self,
+        pipe: Pipeline,
+        job_id: str,
+        rq_id: str,
+        timeout_s: int,
+        at_front: bool = False,
+        kind: str | None = "estimate",
     ) -> None:
-        """Queue estimate ``job_id`` as RQ job ``rq_id`` in ``pipe`` (a MULTI transaction; its
-        commands run when the caller executes it)."""
+        """Queue stored job ``job_id`` (an estimate, or a job of another ``kind`` of
+        JOB_FUNCTIONS) as RQ job ``rq_id`` in ``pipe`` (a MULTI transaction; its commands run
+        when the caller executes it)."""
+        kind = kind or "estimate"  # a record older than the kinds is an estimate
         job = self.estimates.create_job(
-            ESTIMATE_JOB,
+            JOB_FUNCTIONS[kind],
             args=(job_id,),
             job_id=rq_id,
             timeout=timeout_s + RQ_TIMEOUT_GRACE_S,
             result_ttl=0,
             failure_ttl=RQ_FAILURE_TTL_S,
-            description=f"estimate {job_id}",
+            description=f"{kind} {job_id}",
         )
         self.estimates.enqueue_job(job, pipeline=pipe, at_front=at_front)
 

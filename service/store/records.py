@@ -1,17 +1,25 @@
 """A job as stored in its Redis hash, decoded: strings and JSON, no behaviour.
 
 The hash holds the job's metadata and result; its bytes (image, artifacts) are in the blob store
-(``service.store.blobs``) under the names it records.
+(``service.store.blobs``) under the names it records. The result JSON, most of a finished job's
+hash (its iteration history, ~0.7 kB per iteration), is kept zlib-compressed in ``result_z``
+(about a third of the size); records of an older deployment have it plain in ``result``.
 """
 
 from __future__ import annotations
 
 import json
+import zlib
 from dataclasses import dataclass, field
 from datetime import UTC, datetime
 from typing import Any
 
 from schemas.jobs import TERMINAL_STATUSES, Progress
+
+#: Hash field of the zlib-compressed result JSON (bytes); ``result`` is the older, plain one.
+RESULT_Z_FIELD = "result_z"
+#: zlib level of the result: the best ratio, and still well under a millisecond for a result.
+RESULT_ZLIB_LEVEL = 9
 
 
 def utc_now() -> str:
@@ -23,10 +31,21 @@ def text(value: bytes | str | None) -> str | None:
     return value.decode() if isinstance(value, bytes) else value
 
 
+def pack_result(result_json: str) -> bytes:
+    """The result JSON as stored in ``RESULT_Z_FIELD``."""
+    return zlib.compress(result_json.encode(), RESULT_ZLIB_LEVEL)
+
+
+def unpack_result(packed: bytes) -> str:
+    """The result JSON back from ``RESULT_Z_FIELD``."""
+    return zlib.decompress(packed).decode()
+
+
 @dataclass
 class JobRecord:
-    """An estimate job. ``attempts`` counts the starts by a worker; ``rq_id`` names the RQ job
-    of the current enqueueing; ``lost`` lists the attempts whose worker died (for operators)."""
+    """A job (an estimate or a track). ``attempts`` counts the starts by a worker; ``rq_id``
+    names the RQ job of the current enqueueing; ``lost`` lists the attempts whose worker died
+    (for operators)."""
 
     id: str
     status: str
@@ -53,10 +72,15 @@ class JobRecord:
     cancel_requested: bool = False
     fingerprint: str = ""
     lost: list[dict[str, Any]] = field(default_factory=list)
+    #: What the job runs: 'estimate' (one image) or 'track' (a sequence of frames).
+    kind: str = "estimate"
+    #: A job of several inputs (a track): per input {"name": file name, "blob": blob name}.
+    inputs: list[dict[str, str]] = field(default_factory=list)
 
     @classmethod
     def from_hash(cls, raw: dict[bytes, bytes]) -> JobRecord:
-        h = {k.decode(): v.decode() for k, v in raw.items()}
+        packed = raw.get(RESULT_Z_FIELD.encode())
+        h = {k.decode(): v.decode() for k, v in raw.items() if k != RESULT_Z_FIELD.encode()}
         return cls(
             id=h["id"],
             status=h["status"],
@@ -72,7 +96,7 @@ class JobRecord:
             started_at=h.get("started_at") or None,
             finished_at=h.get("finished_at") or None,
             progress=json.loads(h["progress"]) if h.get("progress") else None,
-            result=h.get("result") or None,
+            result=unpack_result(packed) if packed else h.get("result") or None,
             error=json.loads(h["error"]) if h.get("error") else None,
             artifacts=json.loads(h.get("artifacts") or "[]"),
             image_blob=h.get("image_blob") or None,
@@ -81,6 +105,8 @@ class JobRecord:
             cancel_requested=h.get("cancel_requested") == "1",
             fingerprint=h.get("fingerprint", ""),
             lost=json.loads(h.get("lost") or "[]"),
+            kind=h.get("kind") or "estimate",
+            inputs=json.loads(h.get("inputs") or "[]"),
         )
 
     def queued_hash(self) -> dict[str, str]:
@@ -99,7 +125,9 @@ class JobRecord:
             "rq_id": self.rq_id,
             "timeout_s": str(self.timeout_s),
             "fingerprint": self.fingerprint,
+            "kind": self.kind,
             **({"image_blob": self.image_blob} if self.image_blob else {}),
+            **({"inputs": json.dumps(self.inputs)} if self.inputs else {}),
         }
 
     @property

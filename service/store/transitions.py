@@ -11,7 +11,7 @@ job store (creation aside, every ending) and by the leases and reapers
 
 from __future__ import annotations
 
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Mapping, Sequence
 
 import redis
 from redis.client import Pipeline
@@ -29,6 +29,7 @@ GUARD_FIELDS = (
     "timeout_s",
     "worker",
     "lost",
+    "kind",
 )
 
 #: The job's fields before a transition (None where absent).
@@ -37,7 +38,7 @@ Current = dict[str, str | None]
 #: which is still in WATCH mode then).
 Guard = Callable[[Current, Pipeline], bool]
 #: The fields to set: a dict, or a function of the current fields.
-Fields = dict[str, str] | Callable[[Current], dict[str, str]]
+Fields = Mapping[str, str | bytes] | Callable[[Current], Mapping[str, str | bytes]]
 #: More commands of the same transaction (the pipe is in MULTI mode then).
 Extra = Callable[[Pipeline, Current], None]
 

@@ -66,36 +66,7 @@ def _float_csv(text: str) -> list[float]:
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     """Register the ``bench`` options on its subparser."""
-    suite = parser.add_mutually_exclusive_group()
-    suite.add_argument("--quick", action="store_true", help="smoke test: demo sat, 1 case, 160 px")
-    suite.add_argument("--full", action="store_true", help="10 cases per model and band")
-    parser.add_argument(
-        "--robustness",
-        action="store_true",
-        help="the robustness suite: references made with other physics, one class at a time "
-        f"(offsets in ({ROBUSTNESS_BAND[0]:g}, {ROBUSTNESS_BAND[1]:g}]°), each estimate also "
-        "started at the truth (the drift)",
-    )
-    parser.add_argument(
-        "--references", type=_csv, help="reference classes of --robustness (default: all)"
-    )
-    parser.add_argument(
-        "--starts",
-        type=_csv,
-        help="--robustness: start from the case's guess ('offset'), the true pose ('truth') or "
-        "both (default: offset,truth)",
-    )
-    parser.add_argument(
-        "--models",
-        type=_csv,
-        help="demo, iss, aura, phobos, terrain, terrain-ridged or mesh paths (default: the four "
-        "spacecraft)",
-    )
-    parser.add_argument(
-        "--terrain",
-        action="store_true",
-        help="add the terrain band (models terrain, terrain-ridged; see bench/README.md)",
-    )
+    _add_suite_arguments(parser)
     parser.add_argument(
         "--methods",
         type=_csv,
@@ -142,6 +113,42 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "--sensor",
         action="store_true",
         help="only compare Mitsuba's batch sensor with separate perturbation renders",
+    )
+
+
+def _add_suite_arguments(parser: argparse.ArgumentParser) -> None:
+    """Which suite: the preset, robustness or terrain, their references, starts and models."""
+    suite = parser.add_mutually_exclusive_group()
+    suite.add_argument("--quick", action="store_true", help="smoke test: demo sat, 1 case, 160 px")
+    suite.add_argument("--full", action="store_true", help="10 cases per model and band")
+    parser.add_argument(
+        "--robustness",
+        action="store_true",
+        help="the robustness suite: references made with other physics, one class at a time "
+        f"(offsets in ({ROBUSTNESS_BAND[0]:g}, {ROBUSTNESS_BAND[1]:g}]°), each estimate also "
+        "started at the truth (the drift)",
+    )
+    parser.add_argument(
+        "--references", type=_csv, help="reference classes of --robustness (default: all)"
+    )
+    parser.add_argument(
+        "--starts",
+        type=_csv,
+        help="--robustness: start from the case's guess ('offset'), the true pose ('truth') or "
+        "both (default: offset,truth)",
+    )
+    parser.add_argument(
+        "--models",
+        type=_csv,
+        help="demo, iss, aura, phobos, terrain, terrain-ridged or mesh paths (default: the four "
+        "spacecraft)",
+    )
+    parser.add_argument(
+        "--terrain",
+        action="store_true",
+        help="add the terrain band: a cratered heightfield filling the frame (models terrain and "
+        "the held-out terrain-ridged), references ray traced with other physics, each estimate "
+        "also started at the truth",
     )
 
 

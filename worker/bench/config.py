@@ -19,7 +19,8 @@ if TYPE_CHECKING:
 ALL_MODELS = ["demo", "iss", "aura", "phobos"]
 #: The terrain band's models (worker.bench.terrain): the demo terrain, a held-out generator.
 TERRAIN_MODEL_NAMES = ("terrain", "terrain-ridged")
-
+#: Offsets of the terrain band: (lo, hi] degrees and percent of the range.
+TERRAIN_BAND = (2.0, 6.0)
 #: Suite presets; an explicit --models/--cases/--size overrides the preset's value.
 SUITES: dict[str, dict[str, Any]] = {
     "quick": {"models": ["demo"], "cases": 1, "size_px": 160},
@@ -103,7 +104,6 @@ def make_tasks(
     (model, reference class, case index), each run from its guess and from the truth; for a
     terrain model one per case index in the terrain band, from its guess and from the truth."""
     from worker.bench.cases import CaseTask, band_edges, parse_method
-    from worker.bench.terrain import TERRAIN_BAND
 
     methods = [parse_method(m) for m in config["methods"]]
     robust = config["references"] != ["standard"]

@@ -192,7 +192,8 @@ def robust_row(method: str, s: Stats) -> str:
 
 def terrain_tables(summary: dict[str, Any]) -> str:
     """A table per terrain model (the tuned generator, the held-out one), rows = methods."""
-    from worker.bench.terrain import TERRAIN_BAND, TERRAIN_MODELS, TERRAIN_REFERENCE
+    from worker.bench.config import TERRAIN_BAND
+    from worker.bench.terrain import TERRAIN_MODELS, TERRAIN_REFERENCE
 
     lo, hi = TERRAIN_BAND
     parts = [

@@ -52,10 +52,7 @@ TERRAIN_REFERENCE = ReferenceClass(
     noise_sigma=0.01,
 )
 UP = np.array([0.0, 1.0, 0.0])  # glTF: +y up
-#: The terrain band's initial offsets: (lo, hi] degrees and percent of the range.
-TERRAIN_BAND = (2.0, 6.0)
-#: The bench's terrain models (named in worker.bench.config.TERRAIN_MODEL_NAMES): the demo
-#: terrain's generator (tuned on) and a held-out one.
+#: The bench's terrain models: the demo terrain's generator (tuned on) and a held-out one.
 TERRAIN_MODELS = {
     "terrain": "fractal relief and power-law craters (the demo terrain; tuned on)",
     "terrain-ridged": "ridged multifractal relief and power-law craters (held out)",

@@ -18,9 +18,9 @@ import trimesh
 from numpy.typing import NDArray
 from trimesh.exchange.gltf import export_glb
 
+from service.store.files import write_atomic
 from worker.demo.geometry import Parts, box, cylinder, revolve, textured_mesh, tf
 from worker.demo.textures import dish_texture, mli_texture, part_texture, solar_texture
-from worker.files import write_atomic
 
 DEMO_MODEL_NAME = "Demo satellite (procedural)"
 DEMO_FILE_NAME = "demo-sat-v1.glb"

@@ -21,7 +21,7 @@ from numpy.typing import NDArray
 from trimesh.exchange.gltf import export_glb
 from trimesh.visual.material import PBRMaterial
 
-from worker.files import write_atomic
+from service.store.files import write_atomic
 
 Array = NDArray[np.float64]
 

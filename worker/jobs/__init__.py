@@ -1,6 +1,8 @@
 """The worker process: the RQ job functions the API enqueues by name, and what they need.
 
-:mod:`~worker.jobs.estimate` runs a stored estimate (``run_estimate_job``),
+:mod:`~worker.jobs.stored` runs a stored job (lease, cancel, retries, failures) whose work
+:mod:`~worker.jobs.estimate` (``run_estimate_job``) or :mod:`~worker.jobs.track`
+(``run_track_job``: an image sequence) gives it,
 :mod:`~worker.jobs.render` one render (``run_render_job``), :mod:`~worker.jobs.lease` keeps the
 running job's lease and the engine's cancel flag, :mod:`~worker.jobs.models` caches model files
 on the worker's disk, :mod:`~worker.jobs.context` gives a job its settings and Redis, and

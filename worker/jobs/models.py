@@ -18,8 +18,8 @@ from schemas.models import ModelPublic
 from schemas.names import DEMO_MODEL_ID, DEMO_TERRAIN_ID
 from service.store import Keys, ModelStore
 from service.store.blobs import BlobStore, model_file_name
+from service.store.files import write_atomic
 from worker.engine.exceptions import ProxposeError
-from worker.files import write_atomic
 
 
 class ModelNotFoundError(ProxposeError):

@@ -115,8 +115,9 @@ def _work_through_outages(
 
     notice = OutageNotice("worker")
     rq_log = logging.getLogger("rq.worker")
-    if not any(isinstance(f, _RepeatedRetryFilter) for f in rq_log.filters):
-        rq_log.addFilter(_RepeatedRetryFilter())
+    for kind in (_RepeatedRetryFilter, _OutageQuitFilter):
+        if not any(isinstance(f, kind) for f in rq_log.filters):
+            rq_log.addFilter(kind())
     restarts = 0
     while True:
         worker = make_worker()
@@ -174,6 +175,20 @@ class _RepeatedRetryFilter(logging.Filter):
         now, last = time.monotonic(), self.last
         self.last = now
         return now - last > self.QUIET_S
+
+
+class _OutageQuitFilter(logging.Filter):
+    """RQ logs "found an unhandled exception, quitting..." with a traceback when Redis goes away
+    under its work loop; for an outage that is not news (the outage notice logs it once, and the
+    loop is started again), so drop that record. Any other exception still gets it."""
+
+    def filter(self, record: logging.LogRecord) -> bool:
+        from worker.jobs.outage import is_outage
+
+        if "unhandled exception, quitting" not in record.getMessage():
+            return True
+        exc = record.exc_info[1] if record.exc_info else None
+        return exc is None or not is_outage(exc)
 
 
 def _worker_class() -> type[Any]:

@@ -53,10 +53,26 @@ def job_image_name(job_id: str) -> str:
     return f"{job_prefix(job_id)}image"
 
 
+def job_input_name(job_id: str, index: int) -> str:
+    """Input ``index`` of a job of several inputs (a track's frames; deleted when it ends)."""
+    return f"{job_prefix(job_id)}input/{index:05d}"
+
+
 def job_artifact_name(job_id: str, attempt: int | str, name: str) -> str:
-    """One artifact PNG of a job, per attempt, so a superseded attempt never overwrites the
-    artifacts of the attempt that won (``attempt`` is 'migrated' for blobs moved from Redis)."""
-    return f"{job_prefix(job_id)}a{attempt}/{name}.png"
+    """One artifact of a job, per attempt, so a superseded attempt never overwrites the
+    artifacts of the attempt that won (``attempt`` is 'migrated' for blobs moved from Redis).
+    A name without a suffix is a PNG ('overlay_final'); others keep theirs ('track.csv')."""
+    return f"{job_prefix(job_id)}a{attempt}/{name}{'' if '.' in name else '.png'}"
+
+
+#: Media types of the artifacts that are not PNGs, by suffix.
+ARTIFACT_MEDIA_TYPES = {".csv": "text/csv; charset=utf-8", ".json": "application/json"}
+
+
+def artifact_media_type(name: str) -> str:
+    """The media type an artifact called ``name`` is stored and served as."""
+    suffix = name[name.rfind(".") :] if "." in name else ""
+    return ARTIFACT_MEDIA_TYPES.get(suffix, "image/png")
 
 
 def model_file_name(model_id: str, sha256: str) -> str:

@@ -10,12 +10,12 @@ from __future__ import annotations
 
 import errno
 import os
-import tempfile
 import time
 from collections.abc import Iterable, Iterator
 from pathlib import Path
 
 from service.store.blobs.base import BlobEntry, BlobStoreUnavailable, check_name
+from service.store.files import write_atomic
 
 #: Prefix of the temporary files of writes in progress.
 TMP_PREFIX = ".tmp-"
@@ -41,17 +41,7 @@ class FileBlobStore:
     def put(self, name: str, data: bytes, content_type: str = "application/octet-stream") -> None:
         path = self._path(name)
         try:
-            path.parent.mkdir(parents=True, exist_ok=True)
-            fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=TMP_PREFIX)
-            try:
-                with os.fdopen(fd, "wb") as f:
-                    f.write(data)
-                    f.flush()
-                    os.fsync(f.fileno())
-                os.replace(tmp, path)
-            except BaseException:
-                Path(tmp).unlink(missing_ok=True)
-                raise
+            write_atomic(path, data, tmp_prefix=TMP_PREFIX)
         except OSError as exc:
             raise self._unavailable(exc) from exc
 

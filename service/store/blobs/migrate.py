@@ -5,6 +5,8 @@ when the record names no blob. Each move writes the blob, then points the record
 deletes the Redis copy in one transaction, so a reader finds the bytes in one place or the
 other at every moment, and the command can be stopped and run again (it resumes). The API and
 the workers may keep running meanwhile. Afterwards it sweeps the blob store (``sweeper``).
+Finished jobs' plain ``result`` fields are compressed into ``result_z`` on the way (a third of
+the size; both read the same).
 """
 
 from __future__ import annotations
@@ -25,6 +27,7 @@ from service.store.blobs.base import (
     model_file_name,
 )
 from service.store.keys import Keys
+from service.store.records import RESULT_Z_FIELD, pack_result
 
 log = logging.getLogger(__name__)
 
@@ -34,14 +37,15 @@ SCAN_COUNT = 500
 
 @dataclass
 class MigrationReport:
-    """What was moved (images, artifacts, model files, bytes) and dropped (Redis copies of
-    ended jobs' images, and of records that are gone)."""
+    """What was moved (images, artifacts, model files, bytes), dropped (Redis copies of
+    ended jobs' images, and of records that are gone) and compressed (plain results)."""
 
     images: int = 0
     artifacts: int = 0
     models: int = 0
     bytes: int = 0
     dropped: int = 0
+    results: int = 0
 
 
 class BlobMigration:
@@ -53,12 +57,14 @@ class BlobMigration:
         self._image = re.compile(rf"^{p}:job:([0-9a-f]{{32}}):image$")
         self._artifact = re.compile(rf"^{p}:job:([0-9a-f]{{32}}):artifact:([A-Za-z0-9_-]+)$")
         self._model = re.compile(rf"^{p}:model:([A-Za-z0-9_-]+):data$")
+        self._job = re.compile(rf"^{p}:job:([0-9a-f]{{32}})$")
 
     def run(self) -> MigrationReport:
         report = MigrationReport()
         self._images(report)
         self._artifacts(report)
         self._models(report)
+        self._results(report)
         return report
 
     def _scan(self, pattern: str, regex: re.Pattern[str]) -> Iterator[tuple[str, re.Match[str]]]:
@@ -148,3 +154,22 @@ class BlobMigration:
             self.r.delete(key)  # the store reads the blob first: the copy is not needed
             report.models += 1
             report.bytes += len(data)
+
+    def _results(self, report: MigrationReport) -> None:
+        for key, _match in self._scan(f"{self.keys.prefix}:job:*", self._job):
+            with self.r.pipeline() as pipe:
+                while True:
+                    try:
+                        pipe.watch(key)
+                        plain: bytes | None = pipe.hget(key, "result")  # type: ignore[assignment]
+                        if plain is None:
+                            pipe.unwatch()
+                            break
+                        pipe.multi()
+                        pipe.hset(key, RESULT_Z_FIELD, pack_result(plain.decode()))
+                        pipe.hdel(key, "result")
+                        pipe.execute()
+                        report.results += 1
+                        break
+                    except redis.WatchError:
+                        continue

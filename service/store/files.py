@@ -1,5 +1,5 @@
-"""Writing files that other processes read while they are written: the worker's model cache
-and the generated demo satellite, which several workers on one machine share."""
+"""Writing files that other processes read while they are written: the filesystem blob store,
+the worker's model cache and the generated demo models, which several processes share."""
 
 from __future__ import annotations
 
@@ -12,16 +12,17 @@ from pathlib import Path
 FILE_MODE = 0o644
 
 
-def write_atomic(path: Path, data: bytes) -> Path:
+def write_atomic(path: Path, data: bytes, tmp_prefix: str | None = None) -> Path:
     """Write ``data`` to ``path`` so that readers see the old file or the whole new one.
 
-    The bytes go to a temporary file in the same directory (created with ``path``'s parents),
-    reach the disk (fsync) and are moved into place; a failure leaves no temporary file.
-    Returns ``path``.
+    The bytes go to a temporary file in the same directory (created with ``path``'s parents;
+    named ``tmp_prefix…``, by default ``.NAME.….tmp``), reach the disk (fsync) and are moved
+    into place; a failure leaves no temporary file. Returns ``path``.
     """
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    prefix, suffix = (tmp_prefix, "") if tmp_prefix else (f".{path.name}.", ".tmp")
+    fd, tmp = tempfile.mkstemp(prefix=prefix, suffix=suffix, dir=path.parent)
     try:
         with os.fdopen(fd, "wb") as fh:
             fh.write(data)
