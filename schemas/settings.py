@@ -155,6 +155,14 @@ class Settings(BaseSettings):
     workers: int = Field(
         default=1, ge=0, le=64, description="Workers `proxpose serve` starts beside the API."
     )
+    api_processes: int = Field(
+        default=1,
+        ge=1,
+        le=16,
+        description="API processes `proxpose serve` runs (uvicorn --workers); with more than "
+        "one, /metrics adds up the HTTP figures of all of them (Prometheus multiprocess mode, "
+        "files under <data_dir>/prometheus).",
+    )
     worker_nice: int = Field(
         default=10,
         ge=0,

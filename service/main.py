@@ -94,8 +94,12 @@ async def lifespan(app: FastAPI) -> AsyncIterator[None]:
         retry=Retry(ExponentialBackoff(cap=REDIS_RETRY_CAP_S), REDIS_RETRIES),
         **reconnect,
     )
+    # the render wait (an async BLPOP) is the async client's longest call too
     app.state.aredis = redis.asyncio.Redis.from_url(
-        url, retry=AsyncRetry(ExponentialBackoff(cap=REDIS_RETRY_CAP_S), REDIS_RETRIES), **reconnect
+        url,
+        socket_timeout=settings.render_timeout_s + REDIS_CONNECT_TIMEOUT_S,
+        retry=AsyncRetry(ExponentialBackoff(cap=REDIS_RETRY_CAP_S), REDIS_RETRIES),
+        **reconnect,
     )
     app.state.blobs = open_blob_store(settings)
     app.state.store_source = (app.state.redis, Keys(settings.redis_prefix))

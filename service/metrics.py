@@ -4,6 +4,7 @@ every worker's jobs are counted; the blob census is the last sweep's)."""
 
 from __future__ import annotations
 
+import os
 import time
 from collections.abc import Callable, Iterator
 
@@ -35,19 +36,27 @@ class Metrics:
 
     def __init__(self) -> None:
         self.registry = CollectorRegistry()
+        # Several API processes (PROMETHEUS_MULTIPROC_DIR set, see `proxpose serve`): each
+        # writes its HTTP figures to files there and a scrape adds up all of them.
+        multiprocess = bool(os.environ.get("PROMETHEUS_MULTIPROC_DIR"))
+        own = None if multiprocess else self.registry
         self.requests = Counter(
             "proxpose_http_requests",
             "HTTP requests answered, by method, route template and status.",
             ["method", "route", "status"],
-            registry=self.registry,
+            registry=own,
         )
         self.latency = Histogram(
             "proxpose_http_request_duration_seconds",
             "Time to answer an HTTP request (event streams: until they end), s.",
             ["method", "route"],
             buckets=HTTP_LATENCY_BUCKETS_S,
-            registry=self.registry,
+            registry=own,
         )
+        if multiprocess:
+            from prometheus_client.multiprocess import MultiProcessCollector
+
+            MultiProcessCollector(self.registry)
 
     def watch_store(self, source: StoreSource, blobs: BlobSource | None = None) -> None:
         """Also expose the queue, worker, job, memory and blob figures kept in Redis, and the

@@ -160,11 +160,22 @@ class Supervisor:
         log_config = self.data_dir / "uvicorn-logging.json"
         self.data_dir.mkdir(parents=True, exist_ok=True)
         log_config.write_text(json.dumps(uvicorn_log_config(s.log_format)))
-        return [
+        argv = [
             *(sys.executable, "-m", "uvicorn", "service.main:app"),
             *("--host", s.host, "--port", str(s.port), "--timeout-graceful-shutdown", "5"),
             *("--log-config", str(log_config)),
         ]
+        if s.api_processes > 1:
+            # the processes' HTTP metrics go to files that /metrics adds up; emptied at start
+            # (kept across restarts of the API: its counters only grow)
+            import shutil
+
+            metrics_dir = self.data_dir / "prometheus"
+            shutil.rmtree(metrics_dir, ignore_errors=True)
+            metrics_dir.mkdir(parents=True)
+            self.env["PROMETHEUS_MULTIPROC_DIR"] = str(metrics_dir)
+            argv += ["--workers", str(s.api_processes)]
+        return argv
 
     def _watch(self) -> int:
         while self.signals == 0:

@@ -14,13 +14,20 @@ import subprocess
 import sys
 import time
 from pathlib import Path
+from typing import Any
 
 import httpx
 import pytest
 from conftest import REPO, free_port
 
 from service import loadtest
-from service.loadtest.config import QUICK, LoadTestError, check_loopback, make_config
+from service.loadtest.config import (
+    QUICK,
+    QUICK_OPTIONS,
+    LoadTestError,
+    check_loopback,
+    make_config,
+)
 from service.loadtest.poses import PERTURB_ROT_DEG, PERTURB_TRANS_FRAC, perturbed_pose
 from service.loadtest.report import histogram_stats, parse_histograms, percentile, stats
 
@@ -195,3 +202,43 @@ def test_quick_load_test_against_proxpose_serve(tmp_path: Path) -> None:
     assert report["service"]["workers_at_start"] == 2
     assert all(row["rotation_error_deg"] is not None for row in report["per_job"])
     print(f"quick load test: {elapsed:.1f} s")
+
+
+def test_accuracy_is_checked_against_the_reported_covariance() -> None:
+    from types import SimpleNamespace
+
+    from service.loadtest.accuracy import accuracy_summary, rss, within_accuracy
+
+    def job(rot: float, trans: float, converged: bool = True, sigma: bool = True) -> Any:
+        return SimpleNamespace(
+            status="succeeded",
+            converged=converged,
+            rotation_error_deg=rot,
+            translation_error=trans,
+            sigma_rotation_deg=rss([0.02, 0.02, 0.01]) if sigma else None,  # 0.03°
+            sigma_translation=rss([0.001, 0.002, 0.002]) if sigma else None,  # 0.003
+        )
+
+    assert rss([0.02, 0.02, 0.01]) == pytest.approx(0.03) and rss([]) is None
+    assert within_accuracy(job(0.089, 0.0089))  # just inside 3σ
+    assert not within_accuracy(job(0.091, 0.001))  # rotation outside
+    assert not within_accuracy(job(0.01, 0.0091))  # translation outside
+    assert not within_accuracy(job(0.0, 0.0, sigma=False))  # no covariance: cannot pass
+    figures = accuracy_summary(
+        [job(0.02, 0.002), job(0.05, 0.005), job(0.2, 0.001), job(1, 1, False)]
+    )
+    assert (figures["succeeded"], figures["converged"]) == (4, 3)
+    assert (figures["within_stated_accuracy"], figures["within_1_sigma"], figures["outside"]) == (
+        2,
+        1,
+        1,
+    )
+
+
+def test_a_full_run_sends_default_options_and_quick_the_toy_ones() -> None:
+    full, quick = make_config(parse()), make_config(parse("--quick"))
+    assert full.size == 256 and full.options == {} and full.start_deg == 3.0
+    assert quick.options == QUICK_OPTIONS and quick.start_deg == 2.0
+    assert make_config(parse("--max-iterations", "7")).options == {"max_iterations": 7}
+    with pytest.raises(LoadTestError):
+        make_config(parse("--start-deg", "90"))

@@ -14,7 +14,9 @@ from dataclasses import dataclass, field
 from datetime import datetime
 from typing import TYPE_CHECKING, Any
 
-from service.loadtest.config import ESTIMATE_OPTIONS, Config, LoadTestError
+from service.client import Client, ProxposeClientError
+from service.loadtest.accuracy import rss
+from service.loadtest.config import Config, LoadTestError
 from service.loadtest.poses import perturbed_pose
 
 if TYPE_CHECKING:
@@ -67,10 +69,28 @@ class JobRun:
     iterations: int | None = None
     rotation_error_deg: float | None = None
     translation_error: float | None = None
+    # the stated accuracy: root-sum-square of the reported 1-σ per axis (None: no covariance)
+    sigma_rotation_deg: float | None = None
+    sigma_translation: float | None = None
 
     @property
     def terminal(self) -> bool:
         return self.status in TERMINAL
+
+
+def _typed_client(config: Config) -> Client:
+    """The typed client for the setup calls: never through a proxy (an explicit transport
+    turns the environment's proxies off), a render wait of up to RENDER_TIMEOUT_S."""
+    import httpx
+
+    return Client(
+        config.url,
+        api_key=config.api_key,
+        timeout_s=RENDER_TIMEOUT_S,
+        retries=2,
+        max_retry_wait_s=2.0,
+        transport=httpx.HTTPTransport(),
+    )
 
 
 def _seconds_between(a: str | None, b: str | None) -> float | None:
@@ -96,6 +116,9 @@ def _absorb(job: JobRun, body: dict[str, Any]) -> None:
     errors = result.get("errors") or {}
     job.rotation_error_deg = errors.get("rotation_deg")
     job.translation_error = errors.get("translation")
+    covariance = result.get("covariance") or {}
+    job.sigma_rotation_deg = rss(covariance.get("sigma_rotation_deg"))
+    job.sigma_translation = rss(covariance.get("sigma_translation"))
 
 
 def _retry_after_s(response: httpx.Response, default: float = 1.0) -> float:
@@ -133,60 +156,64 @@ class Run:
 
     # ------------------------------------------------------------------ setup
     async def prepare(self) -> None:
-        """Wait for a worker, frame the model, render the reference at the true pose."""
-        import httpx
-
+        """Wait for a worker, frame the model, render the reference at the true pose. The
+        readiness probe and the render go through the typed client (:mod:`service.client`, sync:
+        in a thread); the measured submissions and polls stay on the shared async pool."""
         cfg = self.config
+        with _typed_client(cfg) as api:
+            self.workers = await self._wait_ready(api)
+            request = await self._framing()
+            truth = request["initial_pose"]
+            render = {
+                "model_id": cfg.model,
+                "camera": request["camera"],
+                "pose": truth,
+                "lighting": request["lighting"],
+                "spp": REFERENCE_SPP,
+            }
+            try:
+                self.reference = await asyncio.to_thread(api.render, render)
+            except ProxposeClientError as exc:
+                raise LoadTestError(f"the reference render failed: {exc}") from exc
+        self.base_request = {
+            "model_id": cfg.model,
+            "camera": request["camera"],
+            "lighting": request["lighting"],
+            "ground_truth": truth,
+            "options": cfg.options,
+        }
+        self.setup_s = time.monotonic() - self.t0
+
+    async def _wait_ready(self, api: Client) -> int:
+        """The live workers, once ``/readyz`` answers with at least one (else raises)."""
         ready_by = time.monotonic() + min(READY_TIMEOUT_S, self.remaining())
         while True:
             try:
-                ready = await self.client.get("/readyz")
-                body = ready.json()
-                if ready.status_code == 200 and body.get("workers", 0) > 0:
-                    self.workers = int(body["workers"])
-                    break
-                why = body.get("reason") or f"HTTP {ready.status_code}"
-            except (httpx.HTTPError, ValueError) as exc:
-                why = f"{type(exc).__name__}: {exc}"
+                body = await asyncio.to_thread(api.ready)
+                if body.get("workers", 0) > 0:
+                    return int(body["workers"])
+                why = "no worker is registered yet"
+            except ProxposeClientError as exc:
+                why = str(exc)
             if time.monotonic() >= ready_by:
-                raise LoadTestError(f"the service at {cfg.url} is not ready: {why}")
+                raise LoadTestError(f"the service at {self.config.url} is not ready: {why}")
             await self.sleep(0.5)
-        # the model's default framing (a pages helper: an EstimateCreate document)
+
+    async def _framing(self) -> dict[str, Any]:
+        """The model's default framing (a pages helper: an EstimateCreate document)."""
+        cfg = self.config
         while True:
             framed = await self.client.get(
                 f"/models/{cfg.model}/request.json", params={"width": cfg.size, "height": cfg.size}
             )
             if framed.status_code == 200:
-                break
+                return framed.json()  # type: ignore[no-any-return]
             if framed.status_code != 404 or self.remaining() <= 0:
                 raise LoadTestError(
                     f"cannot frame model '{cfg.model}': HTTP {framed.status_code} "
                     f"{framed.text[:200]}"
                 )
             await self.sleep(0.5)  # the first worker registers demo-sat as it starts
-        request = framed.json()
-        truth = request["initial_pose"]
-        render = {
-            "model_id": cfg.model,
-            "camera": request["camera"],
-            "pose": truth,
-            "lighting": request["lighting"],
-            "spp": REFERENCE_SPP,
-        }
-        rendered = await self.client.post("/v1/renders", json=render, timeout=RENDER_TIMEOUT_S)
-        if rendered.status_code != 200:
-            raise LoadTestError(
-                f"the reference render failed: HTTP {rendered.status_code} {rendered.text[:300]}"
-            )
-        self.reference = rendered.content
-        self.base_request = {
-            "model_id": cfg.model,
-            "camera": request["camera"],
-            "lighting": request["lighting"],
-            "ground_truth": truth,
-            "options": {**ESTIMATE_OPTIONS, "max_iterations": cfg.max_iterations},
-        }
-        self.setup_s = time.monotonic() - self.t0
 
     async def scrape_metrics(self) -> str | None:
         """The service's ``/metrics`` text, or None when it has none."""
@@ -203,7 +230,7 @@ class Run:
         truth = self.base_request["ground_truth"]
         return {
             **self.base_request,
-            "initial_pose": perturbed_pose(truth, job.index),
+            "initial_pose": perturbed_pose(truth, job.index, self.config.start_deg),
             "options": {**self.base_request["options"], "seed": job.index},
         }
 

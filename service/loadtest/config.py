@@ -16,11 +16,12 @@ from urllib.parse import urlsplit
 MAX_CLIENTS = 256
 MAX_JOBS = 10_000
 MAX_TIMEOUT_S = 3600.0
-#: Defaults of a full run and of ``--quick`` (the CI smoke test).
-FULL = {"clients": 50, "jobs": 200, "size": 96, "timeout_s": 900.0}
-QUICK = {"clients": 4, "jobs": 8, "size": 80, "timeout_s": 150.0}
-#: Estimate options: small and quick (what was requested is stated in the report).
-ESTIMATE_OPTIONS = {"max_iterations": 3, "spp": 4, "perturbation_spp": 1}
+#: Defaults of a full run (real estimates: the service's default options, a start a few
+#: degrees off) and of ``--quick`` (the CI smoke test: toy estimates that need not converge).
+FULL = {"clients": 50, "jobs": 200, "size": 256, "timeout_s": 3600.0, "start_deg": 3.0}
+QUICK = {"clients": 4, "jobs": 8, "size": 80, "timeout_s": 150.0, "start_deg": 2.0}
+#: Estimate options of ``--quick``: small and quick (a full run sends none: the defaults).
+QUICK_OPTIONS = {"max_iterations": 3, "spp": 4, "perturbation_spp": 1}
 
 
 class LoadTestError(Exception):
@@ -44,8 +45,14 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--max-iterations",
         type=int,
-        default=ESTIMATE_OPTIONS["max_iterations"],
-        help=f"iteration cap per estimate (default {ESTIMATE_OPTIONS['max_iterations']})",
+        help="iteration cap per estimate (default: the service's; "
+        f"{QUICK_OPTIONS['max_iterations']} with --quick)",
+    )
+    parser.add_argument(
+        "--start-deg",
+        type=float,
+        help="initial guesses: the truth rotated this far about a random axis (default "
+        f"{FULL['start_deg']:g}; {QUICK['start_deg']:g} with --quick)",
     )
     parser.add_argument(
         "--poll-interval-s", type=float, default=0.5, help="status poll interval (default 0.5)"
@@ -68,8 +75,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--quick",
         action="store_true",
-        help=f"smoke test: {QUICK['clients']} clients, {QUICK['jobs']} estimates, "
-        f"{QUICK['size']} px, {QUICK['timeout_s']:g} s (explicit options still win)",
+        help=f"smoke test: {QUICK['clients']} clients, {QUICK['jobs']} toy estimates "
+        f"({QUICK_OPTIONS['max_iterations']} iterations at spp {QUICK_OPTIONS['spp']}, not "
+        f"checked for accuracy), {QUICK['size']} px, {QUICK['timeout_s']:g} s (explicit "
+        "options still win)",
     )
 
 
@@ -83,11 +92,21 @@ class Config:
     size: int
     timeout_s: float
     model: str
-    max_iterations: int
+    max_iterations: int | None
+    start_deg: float
     poll_interval_s: float
     ramp_s: float
     api_key: str | None
     quick: bool
+
+    @property
+    def options(self) -> dict[str, Any]:
+        """The estimate options sent (a full run: the service's defaults but for an explicit
+        --max-iterations; --quick: the toy options)."""
+        options: dict[str, Any] = dict(QUICK_OPTIONS) if self.quick else {}
+        if self.max_iterations is not None:
+            options["max_iterations"] = self.max_iterations
+        return options
 
     def public(self) -> dict[str, Any]:
         """The parameters for the report (the key left out)."""
@@ -134,6 +153,7 @@ def make_config(args: argparse.Namespace) -> Config:
         timeout_s=float(pick("timeout_s")),
         model=args.model,
         max_iterations=args.max_iterations,
+        start_deg=float(pick("start_deg")),
         poll_interval_s=args.poll_interval_s,
         ramp_s=args.ramp_s,
         api_key=args.api_key or os.environ.get("PROXPOSE_API_KEY") or None,
@@ -144,7 +164,11 @@ def make_config(args: argparse.Namespace) -> Config:
         (1 <= config.jobs <= MAX_JOBS, f"--jobs must be 1..{MAX_JOBS}"),
         (16 <= config.size <= 1024, "--size must be 16..1024 px"),
         (10.0 <= config.timeout_s <= MAX_TIMEOUT_S, f"--timeout-s must be 10..{MAX_TIMEOUT_S:g}"),
-        (1 <= config.max_iterations <= 100, "--max-iterations must be 1..100"),
+        (
+            config.max_iterations is None or 1 <= config.max_iterations <= 100,
+            "--max-iterations must be 1..100",
+        ),
+        (0.0 <= config.start_deg <= 30.0, "--start-deg must be 0..30"),
         (0.05 <= config.poll_interval_s <= 10.0, "--poll-interval-s must be 0.05..10"),
         (0.0 <= config.ramp_s <= config.timeout_s / 2, "--ramp-s must be 0..timeout/2"),
     ]

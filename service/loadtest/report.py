@@ -12,8 +12,9 @@ from dataclasses import asdict
 from datetime import datetime
 from typing import Any
 
+from service.loadtest.accuracy import accuracy_summary
 from service.loadtest.client import REFERENCE_SPP, JobRun, Run
-from service.loadtest.poses import PERTURB_ROT_DEG, PERTURB_TRANS_FRAC
+from service.loadtest.poses import PERTURB_TRANS_FRAC
 
 #: The service's own latency histogram (``/metrics``), and the routes read from it.
 _HISTOGRAM_BUCKET = re.compile(
@@ -108,11 +109,16 @@ def build_report(run: Run, wall_s: float, cancelled: int) -> dict[str, Any]:
     ended = [j for j in accepted if j.terminal]
     ends = [j.ended_at_s for j in ended if j.ended_at_s is not None]
     span_s = max(ends) if ends else 0.0
+    per_min = 60.0 * len(ended) / span_s if span_s else None
     return {
         **_setting(run, wall_s),
         "jobs": _job_counts(jobs, cancelled),
         "failures_by_code": _failures_by_code(jobs),
-        "throughput_jobs_per_min": round(60.0 * len(ended) / span_s, 2) if span_s else None,
+        "throughput_jobs_per_min": round(per_min, 2) if per_min is not None else None,
+        "throughput_per_worker_per_min": round(per_min / run.workers, 2)
+        if per_min is not None and run.workers
+        else None,
+        "accuracy": accuracy_summary(jobs),
         "throughput_span_s": round(span_s, 3),
         "latency_ms": _client_latency_ms(jobs),
         "server_latency_ms": server_latency(run),
@@ -149,7 +155,7 @@ def _setting(run: Run, wall_s: float) -> dict[str, Any]:
             "camera": run.base_request.get("camera"),
             "options": run.base_request.get("options"),
             "reference_spp": REFERENCE_SPP,
-            "initial_guess": f"truth rotated {PERTURB_ROT_DEG:g}° about a random axis, moved "
+            "initial_guess": f"truth rotated {run.config.start_deg:g}° about a random axis, moved "
             f"{100 * PERTURB_TRANS_FRAC:g} % of the range",
         },
         "service": {"workers_at_start": run.workers},
@@ -237,7 +243,7 @@ def summary(report: dict[str, Any]) -> str:
         f"{report['machine']['cpus']} CPUs)",
         f"requested: {cfg['clients']} clients × {cfg['jobs']} estimates of {cfg['model']}, "
         f"{cam.get('width')}×{cam.get('height')} px, "
-        + ", ".join(f"{k} {v}" for k, v in opts.items() if k != "seed")
+        + (", ".join(f"{k} {v}" for k, v in opts.items() if k != "seed") or "default options")
         + f"; {req['initial_guess']}; polls every {cfg['poll_interval_s']:g} s"
         + (f"; clients started over {cfg['ramp_s']:g} s" if cfg["ramp_s"] else ""),
         "",
@@ -274,17 +280,24 @@ def summary(report: dict[str, Any]) -> str:
                 f"  ({s['under_50ms_pct']} % < 50 ms)"
             )
     throughput = report["throughput_jobs_per_min"]
+    per_worker = report["throughput_per_worker_per_min"]
+    accuracy = report["accuracy"]
     lines += [
         "",
         f"jobs: {jobs['requested']} requested, {jobs['submitted']} submitted, "
         f"{jobs['succeeded']} succeeded, {jobs['failed']} failed, {jobs['cancelled']} cancelled, "
         f"{jobs['not_submitted']} not submitted, {jobs['lost']} LOST"
         + (f" ({jobs['requeued']} re-queued after a lost worker)" if jobs["requeued"] else ""),
-        f"throughput: {throughput if throughput is not None else '—'} jobs/min over "
+        f"throughput: {throughput if throughput is not None else '—'} estimates/min "
+        f"({per_worker if per_worker is not None else '—'} per worker) over "
         f"{report['throughput_span_s']:.1f} s; {report['throttled_429']} submissions throttled "
         f"(429), {report['submit_retries']} retried, {report['poll_errors']} poll errors",
         "failures: "
         + (", ".join(f"{k} ×{v}" for k, v in report["failures_by_code"].items()) or "none"),
+        f"accuracy: {accuracy['converged']} of {accuracy['succeeded']} succeeded converged, "
+        f"{accuracy['within_stated_accuracy']} within their stated accuracy (3σ of the "
+        f"reported covariance; {accuracy['within_1_sigma']} within 1σ)"
+        + (" — toy estimates (--quick): not checked" if report["config"]["quick"] else ""),
         f"converged: {report['pose_error']['converged']} of {jobs['succeeded']} succeeded; "
         f"wall time {report['duration_s']:.1f} s (setup {report['setup_s']:.1f} s); this "
         f"client used {100 * report['client']['cpu_fraction']:.0f} % of a CPU",
@@ -300,6 +313,15 @@ def verdict(report: dict[str, Any], max_submit_p99_ms: float | None) -> list[str
         problems.append(f"{jobs['lost']} job(s) lost (accepted, never ended)")
     if jobs["succeeded"] != jobs["requested"]:
         problems.append(f"{jobs['requested'] - jobs['succeeded']} estimate(s) did not succeed")
+    accuracy = report["accuracy"]
+    if not report["config"]["quick"]:  # toy estimates need not converge
+        unconverged = accuracy["succeeded"] - accuracy["converged"]
+        if unconverged:
+            problems.append(f"{unconverged} succeeded estimate(s) did not converge")
+        if accuracy["outside"]:
+            problems.append(
+                f"{accuracy['outside']} converged estimate(s) outside their stated accuracy"
+            )
     p99 = report["latency_ms"]["submit"]["p99"]
     if max_submit_p99_ms is not None and p99 is not None and p99 > max_submit_p99_ms:
         problems.append(f"submit p99 {p99:.1f} ms > {max_submit_p99_ms:g} ms")

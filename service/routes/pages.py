@@ -25,13 +25,21 @@ from fastapi import APIRouter, Header, Query, Request, Response
 from fastapi.responses import FileResponse, HTMLResponse
 from fastapi.staticfiles import StaticFiles
 from fastapi.templating import Jinja2Templates
+from starlette.concurrency import run_in_threadpool
 from starlette.staticfiles import PathLike
 from starlette.types import Scope
 
 from schemas.camera import IMAGE_SIDE_MAX_PX, IMAGE_SIDE_MIN_PX
 from schemas.models import MODEL_ID_PATTERN, ModelPublic
 from schemas.settings import get_settings
-from service.deps import KeysDep, ModelStoreDep, QueuesDep, RedisDep, SettingsDep
+from service.deps import (
+    AsyncRedisDep,
+    KeysDep,
+    ModelStoreDep,
+    QueuesDep,
+    RedisDep,
+    SettingsDep,
+)
 from service.errors import not_found
 from service.pages import PreviewCache, preview_render, preview_tag, suggested_request
 from service.routes.renders import create_render
@@ -135,26 +143,30 @@ def model_request(
 
 
 @router.get("/models/{model_id}/preview.png", response_class=Response)
-def model_preview(
+async def model_preview(
     model_id: str,
     models: ModelStoreDep,
     queues: QueuesDep,
     r: RedisDep,
+    aredis: AsyncRedisDep,
     keys: KeysDep,
     settings: SettingsDep,
     if_none_match: Annotated[str | None, Header()] = None,
 ) -> Response:
     """The model's preview PNG, rendered once by a worker through ``POST /v1/renders``'s code
-    and kept in Redis. Without a worker it answers 503 at once (the page shows a placeholder)."""
-    model = _model_or_404(models, model_id)
+    and kept in Redis. Without a worker it answers 503 at once (the page shows a placeholder).
+    The wait for the render holds no thread (as ``POST /v1/renders``)."""
+    model = await run_in_threadpool(_model_or_404, models, model_id)
     etag = f'"{preview_tag(model)}"'
     headers = {"ETag": etag, "Cache-Control": f"private, max-age={PREVIEW_MAX_AGE_S}"}
     if if_none_match == etag:
         return Response(status_code=304, headers=headers)
     cache = PreviewCache(r, keys)
-    png = cache.get(model)
+    png = await run_in_threadpool(cache.get, model)
     if png is None:
-        rendered = create_render(preview_render(model), models, queues, r, keys, settings)
+        rendered = await create_render(
+            preview_render(model), models, queues, aredis, keys, settings
+        )
         png = bytes(rendered.body)
-        cache.put(model, png)
+        await run_in_threadpool(cache.put, model, png)
     return Response(png, media_type="image/png", headers=headers)
