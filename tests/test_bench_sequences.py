@@ -19,7 +19,7 @@ def test_bench_sequences_rejects_an_unknown_motion(tmp_path: Path) -> None:
 @pytest.mark.slow
 def test_bench_sequences_pairs_the_tracker_with_chained_estimates(tmp_path: Path) -> None:
     out = proxpose(
-        "bench", "--sequences", "approach", "--models", "demo", "--frames", "3", "--size", "128",
+        "bench", "--sequences", "approach", "--models", "demo", "--frames", "4", "--size", "128",
         "--references", "tone", "--output", str(tmp_path), timeout=600,
     )  # fmt: skip
     assert out.returncode == 0, out.stderr
@@ -29,8 +29,10 @@ def test_bench_sequences_pairs_the_tracker_with_chained_estimates(tmp_path: Path
         ("demo", "approach", "tone", "chained"),
     ]
     track, chained = rows
-    assert track["frames"] == chained["frames"] == 3
-    assert chained["reinitialised"] == 3  # every chained frame is a full estimate
+    assert track["frames"] == chained["frames"] == 4
+    # every chained frame is a full estimate; one that fails (at 128 px the demo satellite far
+    # down the approach can show too few features) is recorded lost, the bench goes on
+    assert chained["reinitialised"] + chained["lost"] == 4 and chained["reinitialised"] >= 1
     assert track["tracked"] >= 1
     assert track["render_cost_per_frame"] < chained["render_cost_per_frame"]
     assert "| demo | approach | tone | track |" in (tmp_path / "sequences.md").read_text()

@@ -100,17 +100,23 @@ def run_tracker(model: Any, seq: Sequence) -> list[TrackFrame]:
 
 
 def run_chained(model: Any, seq: Sequence) -> list[TrackFrame]:
-    """A full estimate per frame, each from the previous frame's result."""
+    """A full estimate per frame, each from the previous frame's result; a frame whose estimate
+    fails (e.g. too few features) is 'lost', its pose the start, and the next frame starts
+    from there too."""
     from worker.align.estimator import estimate
+    from worker.bench.synth import pose_json
+    from worker.engine.exceptions import ProxposeError
 
     request = seq.request
     out = []
-    from worker.bench.synth import pose_json
-
     for k, (frame, truth) in enumerate(zip(seq.frames, seq.truths, strict=True)):
         start = time.perf_counter()
         req = request.model_copy(update={"ground_truth": pose_json(*truth)})
-        est = estimate(model, _float(frame), req)
+        try:
+            est = estimate(model, _float(frame), req)
+        except ProxposeError as exc:
+            out.append(_failed(k, request.initial_pose, truth, time.perf_counter() - start, exc))
+            continue
         r = est.result
         out.append(
             TrackFrame(
@@ -133,6 +139,28 @@ def run_chained(model: Any, seq: Sequence) -> list[TrackFrame]:
             update={"initial_pose": Pose(t=r.pose.t, quaternion=r.pose.quaternion)}
         )
     return out
+
+
+def _failed(k: int, start: Pose, truth: Any, seconds: float, exc: Exception) -> TrackFrame:
+    """A chained frame whose full estimate failed: lost, at its start pose."""
+    from worker.align.estimator import errors_between
+    from worker.engine.posemath import pose_from_schema, pose_to_schema
+
+    R, t = pose_from_schema(start)
+    return TrackFrame(
+        image=f"frame_{k:03d}",
+        index=k,
+        pose=pose_to_schema(R, t),
+        converged=False,
+        status="lost",
+        reason=getattr(exc, "code", "engine_error"),
+        seconds=round(seconds, 4),
+        renders=0,
+        render_cost=0.0,
+        alignment_score=-1.0,
+        features=0,
+        errors=errors_between(truth, R, t),
+    )
 
 
 def _float(frame: np.ndarray) -> np.ndarray:
