@@ -36,3 +36,30 @@ def test_bench_sequences_pairs_the_tracker_with_chained_estimates(tmp_path: Path
     assert track["tracked"] >= 1
     assert track["render_cost_per_frame"] < chained["render_cost_per_frame"]
     assert "| demo | approach | tone | track |" in (tmp_path / "sequences.md").read_text()
+
+
+@pytest.mark.slow
+def test_a_chained_frame_whose_estimate_fails_is_lost_and_the_next_goes_on(
+    tmp_path: Path, variant: str
+) -> None:
+    """A black frame (a sensor dropout) fails its full estimate: the chained baseline records
+    it lost at its start pose, with its error, and estimates the next frame from there."""
+    import numpy as np
+
+    from schemas.camera import Camera
+    from worker.bench.sequences import Motion, make_sequence
+    from worker.bench.tracks import run_chained
+    from worker.demo.satellite import demo_satellite_path
+    from worker.engine.meshes import load_model
+
+    camera = Camera(width=192, height=144, fx=230.0, fy=230.0, cx=95.5, cy=71.5)
+    model = load_model(demo_satellite_path(tmp_path))
+    seq = make_sequence(model, camera, Motion("test", spin_deg=1.0, closing=0.05), 2, 3, "tone",
+                        fill=0.9)  # fmt: skip
+    seq.frames[0] = np.zeros_like(seq.frames[0])
+    lost, after = run_chained(model, seq)
+    assert lost.status == "lost" and not lost.converged and lost.renders == 0
+    assert lost.reason in {"too_few_features", "empty_render", "unlit_render", "invalid_image"}
+    assert np.allclose(lost.pose.quaternion, seq.request.initial_pose.quaternion, atol=1e-12)
+    assert lost.errors is not None and lost.errors.rotation_deg > 0.5  # the start's offset
+    assert after.status == "reinitialised" and after.converged
