@@ -25,6 +25,12 @@ IdempotencyKey = Annotated[
     str | None, Header(alias="Idempotency-Key", description="Makes retries safe (e.g. a UUID).")
 ]
 
+#: The example of a submission's `request` part in the OpenAPI document (estimates and tracks).
+REQUEST_EXAMPLE = (
+    '{"model_id": "demo-sat", "camera": {"width": 512, "height": 512, "fx": 560, "fy": 560, '
+    '"cx": 255.5, "cy": 255.5}, "initial_pose": {"t": [0.3, -0.2, 14.0], '
+    '"quaternion": [0.57, 0.66, 0.40, 0.20]}}'
+)
 #: Retry-After of a submission refused because the key's cap of active jobs is reached, s.
 ACTIVE_CAP_RETRY_AFTER_S = 15
 #: Cache-Control of an artifact: its URL names one job's output, which never changes.

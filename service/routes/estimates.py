@@ -18,6 +18,7 @@ from service.events import event_stream
 from service.resources import estimate_location, estimate_public, estimate_summary
 from service.store import JobRecord, JobStore, Reaper
 from service.submissions import (
+    REQUEST_EXAMPLE,
     IdempotencyKey,
     artifact_response,
     cancel,
@@ -36,11 +37,6 @@ log = logging.getLogger(__name__)
 
 #: Largest page of a listing.
 MAX_PAGE_SIZE = 100
-_REQUEST_EXAMPLE = (
-    '{"model_id": "demo-sat", "camera": {"width": 512, "height": 512, "fx": 560, "fy": 560, '
-    '"cx": 255.5, "cy": 255.5}, "initial_pose": {"t": [0.3, -0.2, 14.0], '
-    '"quaternion": [0.57, 0.66, 0.40, 0.20]}}'
-)
 
 
 def _get_or_404(jobs: JobStore, job_id: str, settings: Settings) -> JobRecord:
@@ -75,7 +71,7 @@ def create_estimate(
         Form(
             description="JSON: EstimateCreate (REQUEST.json + model_id), as a form field or a "
             "file part.",
-            examples=[_REQUEST_EXAMPLE],
+            examples=[REQUEST_EXAMPLE],
         ),
     ],
     jobs: JobStoreDep,

@@ -22,6 +22,7 @@ from service.resources import track_location, track_public, track_state
 from service.store import JobRecord, JobStore, Reaper
 from service.store.blobs import artifact_media_type
 from service.submissions import (
+    REQUEST_EXAMPLE,
     IdempotencyKey,
     artifact_response,
     cancel,
@@ -42,12 +43,6 @@ log = logging.getLogger(__name__)
 TRACK_TIMEOUT_PER_FRAME_S = 30
 #: Longest frame file name kept (the rest of a longer one is cut), characters.
 FRAME_NAME_MAX_CHARS = 200
-
-_REQUEST_EXAMPLE = (
-    '{"model_id": "demo-sat", "camera": {"width": 512, "height": 512, "fx": 560, "fy": 560, '
-    '"cx": 255.5, "cy": 255.5}, "initial_pose": {"t": [0.3, -0.2, 14.0], '
-    '"quaternion": [0.57, 0.66, 0.40, 0.20]}}'
-)
 
 
 def _backlog(record: JobRecord, after: int) -> list[tuple[dict[str, Any], int]]:
@@ -147,7 +142,7 @@ def create_track(
         Form(
             description="JSON: TrackCreate (REQUEST.json + model_id), as a form field or a "
             "file part.",
-            examples=[_REQUEST_EXAMPLE],
+            examples=[REQUEST_EXAMPLE],
         ),
     ],
     jobs: JobStoreDep,

@@ -23,6 +23,7 @@ import numpy as np
 from schemas.pose import Pose
 from schemas.track import TrackFrame, summarise
 from worker.bench.sequences import MOTIONS, Sequence, make_sequence
+from worker.engine.exceptions import ProxposeError
 
 #: Default sequences: motions, frames each, reference classes.
 DEFAULT_MOTIONS = ("approach", "flyaround", "tumble")
@@ -105,7 +106,6 @@ def run_chained(model: Any, seq: Sequence) -> list[TrackFrame]:
     from there too."""
     from worker.align.estimator import estimate
     from worker.bench.synth import pose_json
-    from worker.engine.exceptions import ProxposeError
 
     request = seq.request
     out = []
@@ -141,7 +141,7 @@ def run_chained(model: Any, seq: Sequence) -> list[TrackFrame]:
     return out
 
 
-def _failed(k: int, start: Pose, truth: Any, seconds: float, exc: Exception) -> TrackFrame:
+def _failed(k: int, start: Pose, truth: Any, seconds: float, exc: ProxposeError) -> TrackFrame:
     """A chained frame whose full estimate failed: lost, at its start pose."""
     from worker.align.estimator import errors_between
     from worker.engine.posemath import pose_from_schema, pose_to_schema
@@ -153,7 +153,7 @@ def _failed(k: int, start: Pose, truth: Any, seconds: float, exc: Exception) -> 
         pose=pose_to_schema(R, t),
         converged=False,
         status="lost",
-        reason=getattr(exc, "code", "engine_error"),
+        reason=exc.code,
         seconds=round(seconds, 4),
         renders=0,
         render_cost=0.0,
