@@ -34,6 +34,7 @@ METHOD_PRESETS: dict[str, dict[str, Any]] = {
         "fit_sun": False,
         "shading_normals": "file",
         "pyramid": False,
+        "window": False,
         "refine_passes": 1,
         "max_iterations": 10,
     },
@@ -149,6 +150,12 @@ class EstimateOptions(BaseModel):
         description="Coarse to fine: the coarse stage and every refinement pass but the last "
         "work on the image reduced by a power of two (short side ≥ 240 px, target ≥ 120 px "
         "across), the last pass at full resolution.",
+    )
+    window: bool = Field(
+        default=True,
+        description="Once the coarse stage has placed the target, the refinement renders and "
+        "processes only a window around it (a square about 1.2× the target's bounding sphere "
+        "across, when that leaves at least a quarter of the image out) instead of the whole image.",
     )
     coarse: Literal["pnp", "none"] = Field(
         default="pnp",

@@ -10,7 +10,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from worker.engine.camera import PinholeCamera
-from worker.engine.renderer import LightingSpec, RenderStats
+from worker.engine.renderer import LightingSpec, Renderer, RenderStats
 
 Image = NDArray[np.float32]
 #: Rectangles (x0, y0, x1, y1, brightness) of the default scene, px of a 128-px image.
@@ -90,22 +90,40 @@ class StubRenderer:
         draw=None,
         model: StubModel | None = None,
         scales: tuple[float, ...] = (1.0,),
+        window_sizes: dict[float, tuple[int, int]] | None = None,
     ) -> None:
         self.camera = camera
         self.model = model or StubModel()
         self.stats = RenderStats()
         self.lighting = LightingSpec((0.0, -0.6, -0.8), 3.0, 0.02)
         self.plans = {s: None for s in scales}
+        self.window_sizes = dict(window_sizes or {})
         self._draw = draw or (lambda R, t, scale: np.zeros((camera.height, camera.width)))
+
+    # the real renderer's window geometry (it needs only camera and window_sizes)
+    _scaled = Renderer._scaled
+    window_camera = Renderer.window_camera
+    window_origin = Renderer.window_origin
+
+    def camera_at(self, scale: float, origin: tuple[int, int] | None = None) -> PinholeCamera:
+        return self._scaled(scale) if origin is None else self.window_camera(scale, origin)
 
     def set_lighting(self, lighting: LightingSpec) -> None:
         self.lighting = lighting
 
-    def camera_at(self, scale: float) -> PinholeCamera:
-        return self.camera if scale == 1.0 else self.camera.scaled(scale)
-
     def render(
-        self, R: NDArray, t: NDArray, scale: float = 1.0, spp: int = 1, seed: int = 0
+        self,
+        R: NDArray,
+        t: NDArray,
+        scale: float = 1.0,
+        spp: int = 1,
+        seed: int = 0,
+        origin: tuple[int, int] | None = None,
     ) -> Image:
+        """``draw`` at ``scale``; with ``origin``, the window of it (the whole image cropped)."""
         self.stats.renders += 1
-        return np.asarray(self._draw(R, t, scale), dtype=np.float32)
+        image = np.asarray(self._draw(R, t, scale), dtype=np.float32)
+        if origin is None:
+            return image
+        (x, y), (w, h) = origin, self.window_sizes[scale]
+        return image[y : y + h, x : x + w]

@@ -107,9 +107,14 @@ class _PlaneRaycaster(StubRenderer):
     """Rays hit the plane z = 10 (camera frame) at the session's pose R = I, t = T0."""
 
     def raycast(
-        self, R: np.ndarray, t: np.ndarray, uv: np.ndarray, scale: float = 1.0
+        self,
+        R: np.ndarray,
+        t: np.ndarray,
+        uv: np.ndarray,
+        scale: float = 1.0,
+        origin: tuple[int, int] | None = None,
     ) -> tuple[np.ndarray, ...]:
-        rays = self.camera_at(scale).rays(uv)
+        rays = self.camera_at(scale, origin).rays(uv)
         X_cam = rays * (10.0 / rays[:, 2:3])
         hit = np.ones(len(uv), dtype=bool)
         hit[0] = False  # one ray misses the model

@@ -153,7 +153,7 @@ def _pnp_from(session: Session, view: RenderedView) -> PnPResult | None:
     if len(matches) < max(opts.min_features, 8):
         return None
     with session.timed("pnp"):
-        X, hit = session.renderer.raycast(view.R, view.t, matches.render_pts, session.level)
+        X, hit = session.raycast(view.R, view.t, matches.render_pts)
         return solve_pnp(
             session.camera, X[hit], matches.ref_pts[hit], view.R, view.t, seed=opts.seed
         )

@@ -81,8 +81,14 @@ def estimate(
     camera = PinholeCamera.from_schema(request.camera)
     check_size(reference, camera.width, camera.height)
     R0, t0 = pose_from_schema(request.initial_pose)
-    pyramid = opts.pyramid and opts.refine_features != "none"  # the PnP baseline stays as is
-    plan = plan_levels(camera, target_px(model, camera, R0, t0), opts.perturbation_scale, pyramid)
+    refines = opts.refine_features != "none"  # the PnP baseline stays as it is
+    plan = plan_levels(
+        camera,
+        target_px(model, camera, R0, t0),
+        opts.perturbation_scale,
+        opts.pyramid and refines,
+        opts.window and refines,
+    )
     renderer_for = partial(
         get_renderer,
         model,
@@ -91,6 +97,7 @@ def estimate(
         plan.scales,
         opts.spp,
         texture_level(model, camera, R0, t0),
+        windows=tuple(sorted(plan.windows.items())),
     )
     renderer = renderer_for("faceted" if opts.shading_normals == "faceted" else "file")
     if renderer.coverage(R0, t0) < MIN_COVERAGE:
@@ -116,7 +123,8 @@ def estimate(
     session.views["final"] = session.current_view()
     session.views.setdefault("second", session.views["final"])
     result = _result(session, reason, opts, R0, t0, truth, start, session.renders)
-    return Estimate(result, session.reference, session.views, session)
+    views = {name: view.in_frame() for name, view in session.views.items()}
+    return Estimate(result, session.reference, views, session)
 
 
 def target_px(model: LoadedModel, camera: PinholeCamera, R: np.ndarray, t: np.ndarray) -> float:
@@ -174,6 +182,7 @@ def _refine(session: Session, renderer_for: RendererFor, plan: LevelPlan) -> Sto
     opts = session.options
     # the first pass at its level, unless it is the only one (the last: at full resolution)
     session.set_level(plan.first_pass if opts.refine_passes > 1 else 1.0)
+    session.centre_window()  # the coarse stage has placed the target: a window around it
     if opts.shading_normals == "auto":
         choose_shading(session, renderer_for)
     try:
@@ -206,6 +215,7 @@ def _refine(session: Session, renderer_for: RendererFor, plan: LevelPlan) -> Sto
 
 
 def _pass(session: Session, fit_sun: bool) -> Outcome:
+    session.centre_window()  # on where the last pass left the target
     return run_lm_stage(session, session.options.refine_features, "refine", fit_sun=fit_sun)
 
 
@@ -267,7 +277,7 @@ def _result(
     fit = session.fit
     final = session.views["final"]
     with session.timed("match"):
-        score = alignment_score(session.reference_grey, final.grey)
+        score = alignment_score(session.ref_grey, final.grey)
     features = fit.features if fit else (session.history[-1].features if session.history else 0)
     rms = float(np.sqrt(session.history[-1].cost)) if session.history else 0.0
     if fit is not None and len(fit.r):

@@ -81,10 +81,11 @@ def learn_at_pose(session: Session, points: Array, normals: Array | None = None)
     the shift across the edge, stored as s·n); E holds the displacements in the level's pixels.
     """
     opts = session.options
-    # Perturbation-render pixels per level pixel, per axis (sizes are rounded to whole px).
-    level_cam = session.camera
-    pert_cam = session.renderer.camera_at(session.perturbation_scale)
-    scale = np.array([pert_cam.width / level_cam.width, pert_cam.height / level_cam.height])
+    # Perturbation-render pixels per level pixel, per axis, and where the level's principal
+    # point falls there: the map between the two images (whole or windowed) is u' = a·u + b.
+    level_cam, pert_cam = session.camera, session.perturbation_camera
+    scale = np.array([pert_cam.fx / level_cam.fx, pert_cam.fy / level_cam.fy])
+    shift = np.array([pert_cam.cx, pert_cam.cy]) - scale * [level_cam.cx, level_cam.cy]
     k = len(points)
     axis, angle = matrix_to_axis_angle(session.R)
     centre_axis = axis if angle > 1e-6 else None
@@ -105,7 +106,7 @@ def learn_at_pose(session: Session, points: Array, normals: Array | None = None)
         renders += 1
         white = float(np.percentile(base, 99.9)) or 1.0
         base8 = smooth(to_u8(base, white))
-        pts_s = (points + 0.5) * scale - 0.5
+        pts_s = points * scale + shift
         E = np.full((2 * k, opts.n_samples), np.nan)
         for i in range(opts.n_samples):
             R_i, t_i = apply_increment(session.R, session.t, B[:, i])
@@ -172,7 +173,7 @@ def analytic_jacobian(
     the component across the edge, like their learned rows. No render is made: this is the
     'fast' method's alternative to docs/method.md steps 2–4, not the paper's learned Jacobian.
     """
-    X, hit = session.renderer.raycast(session.R, session.t, points, session.level)
+    X, hit = session.raycast(session.R, session.t, points)
     k = len(points)
     J = np.full((2 * k, 6), np.nan)
     cam = session.camera

@@ -9,12 +9,16 @@ pass a 'slow' one earns) works at the reference's resolution. Levels are powers 
 smallest whose short side and target keep a floor: PnP on descriptor matches needs more pixels
 (COARSE_*) than the first refinement pass, which starts within a few tenths of a degree
 (FIRST_PASS_*).
+
+Once the coarse stage has placed the target, the refinement needs only the part of the image
+the target covers: its levels get a *window* (:func:`plan_windows`), a square around the
+target's bounding sphere with a margin, rendered and processed instead of the whole image.
 """
 
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 from worker.engine.camera import PinholeCamera
 
@@ -25,6 +29,16 @@ FIRST_PASS_SIDE_PX, FIRST_PASS_TARGET_PX = 240, 120
 #: Shortest side of a perturbation render, px (a small image halved leaves the tracker too
 #: little to learn from).
 MIN_PERTURBATION_SIDE_PX = 256
+#: The refinement's window: the target's apparent diameter at the initial pose times
+#: WINDOW_MARGIN (its range may be that much shorter, and a bounding sphere off the optical axis
+#: projects larger) plus WINDOW_PAD_PX, rounded up to WINDOW_STEP_PX (renderers, and their
+#: compiled kernels, are then shared by targets of about one size).
+WINDOW_MARGIN = 1.2
+WINDOW_PAD_PX = 24
+WINDOW_STEP_PX = 64
+#: A window covering more of the image than this is not used: the refinement takes the whole
+#: image (a target filling the frame, terrain).
+MAX_WINDOW_FRACTION = 0.75
 
 
 @dataclass(frozen=True)
@@ -35,6 +49,8 @@ class LevelPlan:
     coarse: float
     first_pass: float
     perturbation: dict[float, float]
+    #: Film size (w, h) of the refinement's window at each of its scales (empty: no window).
+    windows: dict[float, tuple[int, int]] = field(default_factory=dict)
 
     @property
     def scales(self) -> tuple[float, ...]:
@@ -59,13 +75,37 @@ def level_for(camera: PinholeCamera, target_px: float, side_px: float, across_px
 
 
 def plan_levels(
-    camera: PinholeCamera, target_px: float, perturbation: float, pyramid: bool
+    camera: PinholeCamera,
+    target_px: float,
+    perturbation: float,
+    pyramid: bool,
+    window: bool = False,
 ) -> LevelPlan:
-    """The levels of one estimate (``pyramid`` False: everything at full resolution)."""
+    """The levels of one estimate (``pyramid`` False: everything at full resolution), with
+    windows for the refinement when ``window`` is set and the target leaves enough out."""
     coarse = first = 1.0
     if pyramid:
         coarse = level_for(camera, target_px, COARSE_SIDE_PX, COARSE_TARGET_PX)
         first = level_for(camera, target_px, FIRST_PASS_SIDE_PX, FIRST_PASS_TARGET_PX)
     levels = {first, 1.0}  # the levels that learn a Jacobian
     scales = {lv: perturbation_scale(perturbation, lv, camera) for lv in levels}
-    return LevelPlan(coarse, first, scales)
+    windows = plan_windows(camera, target_px, levels | set(scales.values())) if window else {}
+    return LevelPlan(coarse, first, scales, windows)
+
+
+def plan_windows(
+    camera: PinholeCamera, target_px: float, scales: set[float]
+) -> dict[float, tuple[int, int]]:
+    """Film sizes (w, h) of the window at each of ``scales``: a square WINDOW_MARGIN times the
+    target's apparent diameter (``target_px``, full-resolution px) plus WINDOW_PAD_PX, rounded
+    up to WINDOW_STEP_PX and clipped to the image; none when it would cover more than
+    MAX_WINDOW_FRACTION of the image."""
+    side = WINDOW_STEP_PX * math.ceil((WINDOW_MARGIN * target_px + WINDOW_PAD_PX) / WINDOW_STEP_PX)
+    w, h = min(camera.width, side), min(camera.height, side)
+    if w * h > MAX_WINDOW_FRACTION * camera.width * camera.height:
+        return {}
+    sizes = {}
+    for s in scales:
+        cam = camera if s == 1.0 else camera.scaled(s)
+        sizes[s] = (min(cam.width, math.ceil(w * s) + 2), min(cam.height, math.ceil(h * s) + 2))
+    return sizes

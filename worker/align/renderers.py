@@ -1,4 +1,5 @@
-"""The renderers of a process: one per (model, camera, scales, texture level, shading), kept.
+"""The renderers of a process: one per (model, camera, scales, texture level, shading, window
+sizes), kept.
 
 Building a Mitsuba scene and tracing its kernels costs far more than a render, so estimates
 and render jobs on the same model and camera reuse one renderer, relit for each request.
@@ -40,9 +41,11 @@ def get_renderer(
     spp: int,
     level: int = 0,
     shading: str = "file",
+    windows: tuple[tuple[float, tuple[int, int]], ...] = (),
 ) -> Renderer:
-    """A renderer for (model, camera, scales, texture level, shading), reused across estimates."""
-    key = (model.sha256, camera, scales, level, shading)
+    """A renderer for (model, camera, scales, texture level, shading, window sizes), reused
+    across estimates."""
+    key = (model.sha256, camera, scales, level, shading, windows)
     renderer = _renderers.get(key)
     if renderer is None:
         renderer = Renderer(
@@ -53,6 +56,7 @@ def get_renderer(
             spp=spp,
             px_per_unit=2.0 ** (level / 2.0),
             shading=shading,
+            window_sizes=dict(windows),
         )
         _renderers[key] = renderer
         while len(_renderers) > RENDERER_CACHE_SIZE:

@@ -31,17 +31,34 @@ from worker.engine.renderer import LightingSpec, Renderer
 Array = NDArray[np.float64]
 ProgressCallback = Callable[[IterationRecord, int], None]
 CancelCheck = Callable[[], bool]
+#: A window's top-left pixel in its level's image, or None for the whole image.
+Window = tuple[int, int] | None
 
 
 @dataclass
 class RenderedView:
-    """A render at a pose and a pyramid level: linear RGB and display-encoded grey."""
+    """A render at a pose and a pyramid level: linear RGB and display-encoded grey, of the
+    level's whole image or of a window of it."""
 
     R: Array
     t: Array
     linear: FloatImage
     grey: FloatImage
     level: float = 1.0  # image scale relative to the reference (1 = full resolution)
+    origin: Window = None  # the window's top-left pixel in the level's image (None: no window)
+    frame: tuple[int, int] | None = None  # (w, h) of the level's whole image, for a window
+
+    def in_frame(self) -> RenderedView:
+        """This view on the level's whole image: a window's render pasted onto the sky."""
+        if self.origin is None or self.frame is None:
+            return self
+        (x, y), (w, h) = self.origin, self.frame
+        hh, ww = self.grey.shape[:2]
+        linear = np.zeros((h, w, *self.linear.shape[2:]), dtype=self.linear.dtype)
+        grey = np.zeros((h, w), dtype=self.grey.dtype)
+        linear[y : y + hh, x : x + ww] = self.linear
+        grey[y : y + hh, x : x + ww] = self.grey
+        return RenderedView(self.R, self.t, linear, grey, self.level)
 
 
 @dataclass(frozen=True)
@@ -99,9 +116,12 @@ class Session:
     #: renderer has a sensor for every one of them).
     level: float = 1.0
     perturbation_scales: dict[float, float] = field(default_factory=dict)
+    #: Where the window is centred (full-resolution px): the levels the renderer has a window
+    #: for then work on it instead of the whole image (see worker.align.pyramid). None: off.
+    window_centre: tuple[float, float] | None = None
     _pyramid: dict[float, tuple[FloatImage, FloatImage]] = field(default_factory=dict)
     _renders_at_last_record: int = 0
-    _described: dict[tuple[str, int, float], Described] = field(default_factory=dict)
+    _described: dict[tuple[str, int, float, Window], Described] = field(default_factory=dict)
     _time_at_last_record: float = field(default_factory=time.perf_counter)
 
     def __post_init__(self) -> None:
@@ -109,8 +129,30 @@ class Session:
 
     @property
     def camera(self) -> PinholeCamera:
-        """The camera at the working level."""
-        return self.renderer.camera_at(self.level)
+        """The camera at the working level (of its window, if it has one)."""
+        return self.renderer.camera_at(self.level, self.origin)
+
+    @property
+    def origin(self) -> Window:
+        """The window's top-left pixel at the working level (None: the whole image)."""
+        return self._origin_at(self.level)
+
+    def _origin_at(self, scale: float) -> Window:
+        if self.window_centre is None or scale not in self.renderer.window_sizes:
+            return None
+        return self.renderer.window_origin(scale, self.window_centre)
+
+    def centre_window(self) -> None:
+        """Centre the window on the target's bounding sphere at the current pose (a no-op
+        when the renderer has no window); the current view is rendered again if it moved."""
+        if not self.renderer.window_sizes:
+            return
+        centre = self.R @ self.renderer.model.centre + self.t
+        u, v = self.renderer.camera.project(centre)[0]
+        before = self.origin
+        self.window_centre = (float(u), float(v))
+        if self.origin != before:
+            self.current, self.fit = None, None
 
     @property
     def ref_image(self) -> FloatImage:
@@ -124,14 +166,21 @@ class Session:
 
     def _at_level(self) -> tuple[FloatImage, FloatImage]:
         if self.level == 1.0:
-            return self.reference, self.reference_grey
-        if self.level not in self._pyramid:
-            cam = self.camera
-            size = (cam.width, cam.height)
-            image = cv2.resize(self.reference, size, interpolation=cv2.INTER_AREA)
-            grey = cv2.resize(self.reference_grey, size, interpolation=cv2.INTER_AREA)
-            self._pyramid[self.level] = (image, grey)
-        return self._pyramid[self.level]
+            image, grey = self.reference, self.reference_grey
+        else:
+            if self.level not in self._pyramid:
+                cam = self.renderer.camera_at(self.level)
+                size = (cam.width, cam.height)
+                image = cv2.resize(self.reference, size, interpolation=cv2.INTER_AREA)
+                grey = cv2.resize(self.reference_grey, size, interpolation=cv2.INTER_AREA)
+                self._pyramid[self.level] = (image, grey)
+            image, grey = self._pyramid[self.level]
+        if (origin := self.origin) is None:
+            return image, grey
+        (x, y), cam = origin, self.camera
+        return image[y : y + cam.height, x : x + cam.width], grey[
+            y : y + cam.height, x : x + cam.width
+        ]
 
     @property
     def perturbation_scale(self) -> float:
@@ -177,7 +226,7 @@ class Session:
         kinds = ("sift", "orb") if detector == "both" else (detector,)
         out = {}
         for kind in kinds:
-            key = (kind, max_features, self.level)
+            key = (kind, max_features, self.level, self.origin)
             if key not in self._described:
                 self._described[key] = describe(self._reference_u8(), kind, max_features)
             out[kind] = self._described[key]
@@ -199,17 +248,23 @@ class Session:
         One seed for every main render keeps render noise from changing between nearby poses,
         so cost comparisons see the pose and not the sampler.
         """
-        linear = self._render(R, t, self.level, self.options.spp, self.options.seed)
+        origin = self.origin
+        linear = self._render(R, t, self.level, self.options.spp, self.options.seed, origin)
         grey = render_to_grey(linear)
-        view = RenderedView(np.asarray(R), np.asarray(t), linear, grey, self.level)
+        frame = None
+        if origin is not None:
+            whole = self.renderer.camera_at(self.level)
+            frame = (whole.width, whole.height)
+        view = RenderedView(np.asarray(R), np.asarray(t), linear, grey, self.level, origin, frame)
         self.views.setdefault("first", view)
         return view
 
     def current_view(self) -> RenderedView:
-        """The render at the current pose and level (rendered once and kept)."""
+        """The render at the current pose, level and window (rendered once and kept)."""
         if (
             self.current is None
             or self.current.level != self.level
+            or self.current.origin != self.origin
             or not (
                 np.array_equal(self.current.R, self.R) and np.array_equal(self.current.t, self.t)
             )
@@ -217,16 +272,29 @@ class Session:
             self.current = self.render_view(self.R, self.t)
         return self.current
 
+    @property
+    def perturbation_camera(self) -> PinholeCamera:
+        """The camera of the perturbation renders at the working level (and window)."""
+        scale = self.perturbation_scale
+        return self.renderer.camera_at(scale, self._origin_at(scale))
+
     def render_perturbed(self, R: Array, t: Array, seed: int) -> FloatImage:
         """Display-encoded grey render for Jacobian learning (at the level's perturbation
-        scale, with the perturbation spp)."""
-        spp = self.options.perturbation_spp
-        return render_to_grey(self._render(R, t, self.perturbation_scale, spp, seed))
+        scale, with the perturbation spp; of the window at that scale, if any)."""
+        spp, scale = self.options.perturbation_spp, self.perturbation_scale
+        return render_to_grey(self._render(R, t, scale, spp, seed, self._origin_at(scale)))
 
-    def _render(self, R: Array, t: Array, scale: float, spp: int, seed: int) -> FloatImage:
+    def raycast(self, R: Array, t: Array, uv: Array) -> tuple[Array, NDArray[np.bool_]]:
+        """Surface points (N, 3, model frame) seen through the working level's pixels uv
+        (N, 2) at pose (R, t), and which rays hit (see Renderer.raycast)."""
+        return self.renderer.raycast(R, t, uv, self.level, self.origin)
+
+    def _render(
+        self, R: Array, t: Array, scale: float, spp: int, seed: int, origin: Window = None
+    ) -> FloatImage:
         self.check_cancel()
         start = self.renderer.stats.seconds
-        linear = self.renderer.render(R, t, scale=scale, spp=spp, seed=seed)
+        linear = self.renderer.render(R, t, scale=scale, spp=spp, seed=seed, origin=origin)
         self.timings_s["render"] += self.renderer.stats.seconds - start
         self.renders += 1
         full = self.renderer.camera_at(1.0)

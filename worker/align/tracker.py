@@ -109,7 +109,11 @@ class Tracker:
     def __init__(
         self, model: LoadedModel, request: EstimateRequest, should_cancel: CancelCheck | None = None
     ) -> None:
-        self.model, self.request, self.should_cancel = model, request, should_cancel
+        # The frames share one renderer and carry feature positions from frame to frame in
+        # the whole image's pixels: no refinement window (its origin would move with the target).
+        options = request.options.model_copy(update={"window": False})
+        self.model, self.should_cancel = model, should_cancel
+        self.request = request.model_copy(update={"options": options})
         self.poses: list[Pose] = []
         self._misalignment: list[float] = []
         self._memory: _Memory | None = None

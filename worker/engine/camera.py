@@ -69,6 +69,16 @@ class PinholeCamera:
             self.skew * sx,
         )
 
+    def cropped(self, x0: int, y0: int, width: int, height: int) -> PinholeCamera:
+        """The same camera imaging onto the ``width`` × ``height`` window of its image whose
+        top-left pixel is (x0, y0): only the principal point moves, cx' = cx − x0."""
+        if not (0 <= x0 and 0 <= y0 and x0 + width <= self.width and y0 + height <= self.height):
+            raise ValueError(
+                f"window {width}x{height} at ({x0}, {y0}) is not inside the "
+                f"{self.width}x{self.height} image"
+            )
+        return PinholeCamera(width, height, self.fx, self.fy, self.cx - x0, self.cy - y0, self.skew)
+
     def project(self, X_cam: ArrayLike) -> Array:
         """Pixel coordinates (N, 2) of camera-frame points (N, 3): s·[u v 1]ᵀ = K X."""
         X = np.atleast_2d(np.asarray(X_cam, dtype=np.float64))

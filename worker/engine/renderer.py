@@ -3,7 +3,11 @@
 The scene is built once per (model, camera, scales): the model stays in its own frame, which is
 Mitsuba's world frame, and a pose b = R a + t moves the *camera* (and the sun with it) through
 ``mi.traverse`` updates — no scene reload, no recompilation. One sensor is built per resolution
-scale (the full image and the cheaper perturbation renders).
+scale (the full image and the cheaper perturbation renders), and optionally one per *window*
+scale: a film of fixed size that sees a movable sub-rectangle of the scaled image (a target
+covering a third of the frame should not pay for all of it). A window moves through its
+sensor's principal point offset, which the render kernel reads as a parameter: moving it
+recompiles nothing (changing a film's crop offset would).
 """
 
 from __future__ import annotations
@@ -18,7 +22,8 @@ from numpy.typing import ArrayLike, NDArray
 
 from worker.engine.camera import PinholeCamera, RenderPlan, plan_render, warp_to_target
 from worker.engine.exceptions import RenderError
-from worker.engine.meshes import LoadedModel, MeshPart
+from worker.engine.meshes import LoadedModel
+from worker.engine.scene_meshes import scene_mesh
 
 Array = NDArray[np.float64]
 
@@ -27,12 +32,6 @@ CV_FROM_MI = np.diag([-1.0, -1.0, 1.0])
 #: Clip planes in model radii (a target farther than FAR_CLIP_RADII is below a pixel anyway).
 NEAR_CLIP_RADII = 1e-4
 FAR_CLIP_RADII = 1e5
-#: Texture resolution kept at the working range, texels per pixel. A camera integrates the
-#: surface's full detail over each pixel; a texture prefiltered much below that makes every
-#: textured feature softer (and elsewhere) in our render than in the image, while one far
-#: finer aliases into sampling noise. Measured on references with unfiltered textures: 6
-#: texels per pixel left half the start-at-truth drift of 1.5 on the textured models.
-TEXELS_PER_PIXEL = 6.0
 #: Shading normals a renderer can use: the model file's vertex normals (faceted where it has
 #: none), or every triangle's own normal.
 SHADINGS = ("file", "faceted")
@@ -41,6 +40,8 @@ SHADINGS = ("file", "faceted")
 SAMPLER = "multijitter"
 #: Ray batches are padded to a multiple of this, so Dr.Jit reuses one compiled kernel.
 RAY_BATCH = 4096
+#: A sensor: its scale and whether it is a window's.
+SensorKey = tuple[float, bool]
 
 
 @dataclass(frozen=True)
@@ -91,6 +92,7 @@ class Renderer:
         pixel_filter: str = "box",
         px_per_unit: float | None = None,
         shading: str = "file",
+        window_sizes: dict[float, tuple[int, int]] | None = None,
     ) -> None:
         import mitsuba as mi
 
@@ -108,9 +110,15 @@ class Renderer:
         if shading not in SHADINGS:
             raise ValueError(f"shading must be one of {SHADINGS}, got {shading!r}")
         self.shading = shading
-        self.plans: dict[float, RenderPlan] = {
-            s: plan_render(camera if s == 1.0 else camera.scaled(s)) for s in scales
-        }
+        self.plans: dict[float, RenderPlan] = {s: plan_render(self._scaled(s)) for s in scales}
+        # Windows need a square-pixel camera: a warped source film would change its size with
+        # the window's position.
+        #: Film size (w, h) of the window sensor at each window scale.
+        self.window_sizes = dict(window_sizes or {}) if camera.is_square_pixel else {}
+        self._sensors: list[tuple[SensorKey, RenderPlan]] = [
+            ((s, False), plan) for s, plan in self.plans.items()
+        ] + [((s, True), plan_render(self.window_camera(s, (0, 0)))) for s in self.window_sizes]
+        self._origins: dict[float, tuple[int, int]] = dict.fromkeys(self.window_sizes, (0, 0))
         self.stats = RenderStats()
         self._lighting = lighting
         self._R = np.eye(3)  # the attitude of the last pose: the sun turns with the camera
@@ -120,8 +128,27 @@ class Renderer:
             raise RenderError(f"cannot build the Mitsuba scene: {exc}") from exc
         self.params = mi.traverse(self.scene)
         self._render_fn = _frozen_render() if use_frozen(mi.variant()) else _plain_render
-        self._sensor_index = {s: i for i, s in enumerate(self.plans)}
+        self._sensor_index = {key: i for i, (key, _) in enumerate(self._sensors)}
         self.set_lighting(lighting)
+
+    def _scaled(self, scale: float) -> PinholeCamera:
+        return self.camera if scale == 1.0 else self.camera.scaled(scale)
+
+    def window_camera(self, scale: float, origin: tuple[int, int]) -> PinholeCamera:
+        """The camera of the window at ``scale`` whose top-left pixel is ``origin`` (in the
+        scaled image's pixels)."""
+        w, h = self.window_sizes[scale]
+        return self._scaled(scale).cropped(origin[0], origin[1], w, h)
+
+    def window_origin(self, scale: float, centre: tuple[float, float]) -> tuple[int, int]:
+        """The origin of the window at ``scale`` centred as near ``centre`` (full-resolution
+        pixels) as the image's edges allow."""
+        w, h = self.window_sizes[scale]
+        cam = self._scaled(scale)
+        sx, sy = cam.width / self.camera.width, cam.height / self.camera.height
+        x = round((centre[0] + 0.5) * sx - 0.5 - 0.5 * (w - 1))
+        y = round((centre[1] + 0.5) * sy - 0.5 - 0.5 * (h - 1))
+        return min(max(x, 0), cam.width - w), min(max(y, 0), cam.height - h)
 
     # -- scene construction -------------------------------------------------------------
     def scene_dict(self) -> dict[str, object]:
@@ -145,7 +172,7 @@ class Renderer:
             "ambient": {"type": "constant", "radiance": 0.0, "sampling_weight": 0.0},
         }
         r = self.model.radius
-        for i, plan in enumerate(self.plans.values()):
+        for i, (_, plan) in enumerate(self._sensors):
             px, py = plan.principal_point_offset
             scene[f"sensor{i}"] = {
                 "type": "perspective",
@@ -170,7 +197,7 @@ class Renderer:
                 "sampler": {"type": SAMPLER, "sample_count": self.spp},
             }
         for i, part in enumerate(self.model.parts):
-            scene[f"part{i}"] = _mesh(part, f"part{i}", self.px_per_unit, self.shading)
+            scene[f"part{i}"] = scene_mesh(part, f"part{i}", self.px_per_unit, self.shading)
         return scene
 
     # -- pose and lighting --------------------------------------------------------------
@@ -181,7 +208,7 @@ class Renderer:
         cam2model = np.eye(4)
         cam2model[:3, :3] = R.T @ CV_FROM_MI
         cam2model[:3, 3] = -R.T @ t
-        for i in range(len(self.plans)):
+        for i in range(len(self._sensors)):
             self._put_transform(f"sensor{i}.to_world", cam2model)
         self._R = R
         self._update_sun()
@@ -217,14 +244,18 @@ class Renderer:
         scale: float = 1.0,
         spp: int | None = None,
         seed: int = 0,
+        origin: tuple[int, int] | None = None,
     ) -> NDArray[np.float32]:
-        """Linear RGB render (H, W, 3) float32 at pose (R, t), on the scaled camera's grid."""
-
-        plan = self.plans[scale]
+        """Linear RGB render (H, W, 3) float32 at pose (R, t), on the scaled camera's grid, or
+        with ``origin`` on the window at that scale whose top-left pixel is ``origin``."""
         start = time.perf_counter()
+        if origin is None:
+            plan, key = self.plans[scale], (scale, False)
+        else:
+            plan, key = self._move_window(scale, origin), (scale, True)
         self.set_pose(R, t)
         try:
-            img = self._render_fn(self.scene, self._sensor_index[scale], spp or self.spp, seed)
+            img = self._render_fn(self.scene, self._sensor_index[key], spp or self.spp, seed)
         except Exception as exc:
             raise RenderError(f"render failed: {exc}") from exc
         out = warp_to_target(np.asarray(img, dtype=np.float32)[..., :3], plan)
@@ -233,15 +264,33 @@ class Renderer:
         self.stats.by_scale[scale] = self.stats.by_scale.get(scale, 0) + 1
         return out
 
-    def camera_at(self, scale: float) -> PinholeCamera:
-        """The target camera of the render at ``scale``."""
-        return self.plans[scale].target
+    def _move_window(self, scale: float, origin: tuple[int, int]) -> RenderPlan:
+        """Point the window sensor at ``scale`` at ``origin`` (its principal point offset; the
+        caller's set_pose applies the update) and return its plan there."""
+        plan = plan_render(self.window_camera(scale, origin))
+        if self._origins[scale] != origin:
+            i = self._sensor_index[(scale, True)]
+            px, py = plan.principal_point_offset
+            self.params[f"sensor{i}.principal_point_offset_x"] = -px
+            self.params[f"sensor{i}.principal_point_offset_y"] = -py
+            self._origins[scale] = origin
+        return plan
+
+    def camera_at(self, scale: float, origin: tuple[int, int] | None = None) -> PinholeCamera:
+        """The target camera of the render at ``scale`` (of its window at ``origin``)."""
+        return self.plans[scale].target if origin is None else self.window_camera(scale, origin)
 
     # -- ray casting --------------------------------------------------------------------
     def raycast(
-        self, R: ArrayLike, t: ArrayLike, uv: ArrayLike, scale: float = 1.0
+        self,
+        R: ArrayLike,
+        t: ArrayLike,
+        uv: ArrayLike,
+        scale: float = 1.0,
+        origin: tuple[int, int] | None = None,
     ) -> tuple[Array, NDArray[np.bool_]]:
-        """Surface points (N, 3, model frame) seen through pixels uv (N, 2) at pose (R, t).
+        """Surface points (N, 3, model frame) seen through pixels uv (N, 2) at pose (R, t), in
+        the image at ``scale`` (its window at ``origin``).
 
         Returns the points and a mask of the rays that hit the model.
         """
@@ -251,7 +300,7 @@ class Renderer:
         n = len(uv)
         if n == 0:
             return np.zeros((0, 3)), np.zeros(0, dtype=bool)
-        d_model = self.camera_at(scale).rays(uv) @ R  # (Rᵀ d)ᵀ
+        d_model = self.camera_at(scale, origin).rays(uv) @ R  # (Rᵀ d)ᵀ
         origin = -R.T @ t
         hit, points = _intersect(self.scene, origin, d_model)
         return points[:n], hit[:n]
@@ -324,67 +373,3 @@ def _intersect(scene: object, origin: Array, dirs: Array) -> tuple[NDArray[np.bo
     pts = np.stack([np.array(si.p.x), np.array(si.p.y), np.array(si.p.z)], axis=1)
     dr.eval()
     return hits, pts.astype(np.float64)
-
-
-def prefiltered_texture(part: MeshPart, px_per_unit: float | None) -> NDArray[np.float32]:
-    """The part's texture downsampled to about TEXELS_PER_PIXEL at ``px_per_unit``."""
-    assert part.texture is not None
-    if not px_per_unit:
-        return part.texture
-    factor = part.texels_per_unit / (TEXELS_PER_PIXEL * px_per_unit)
-    if factor <= 1.0:
-        return part.texture
-    import cv2
-
-    h, w = part.texture.shape[:2]
-    size = (max(8, round(w / factor)), max(8, round(h / factor)))
-    return cv2.resize(part.texture, size, interpolation=cv2.INTER_AREA)
-
-
-def _mesh(
-    part: MeshPart, name: str, px_per_unit: float | None = None, shading: str = "file"
-) -> object:
-    """A Mitsuba mesh with a two-sided diffuse BSDF (texture, vertex colours or an albedo)."""
-    import mitsuba as mi
-
-    if part.texture is not None:
-        reflectance: object = {
-            "type": "bitmap",
-            "bitmap": mi.Bitmap(prefiltered_texture(part, px_per_unit)),
-            "raw": True,
-            "filter_type": "bilinear",
-        }
-    elif part.vertex_colors is not None:
-        reflectance = {"type": "mesh_attribute", "name": "vertex_color"}
-    else:
-        reflectance = {"type": "rgb", "value": list(part.albedo)}
-    props = mi.Properties()
-    # Two-sided: a face wound the other way (normals into the ground), an inconsistently wound
-    # mesh or an open surface seen from behind reflects like its front instead of rendering black.
-    diffuse = {"type": "diffuse", "reflectance": reflectance}
-    props["bsdf"] = mi.load_dict({"type": "twosided", "bsdf": diffuse})
-    has_normals = part.normals is not None and shading == "file"
-    has_uv = part.uvs is not None and part.texture is not None
-    mesh = mi.Mesh(
-        name,
-        len(part.vertices),
-        len(part.faces),
-        props=props,
-        has_vertex_normals=has_normals,
-        has_vertex_texcoords=has_uv,
-    )
-    params = mi.traverse(mesh)
-
-    def put(key: str, values: NDArray[np.generic]) -> None:
-        params[key] = type(params[key])(np.ascontiguousarray(values).ravel())
-
-    put("vertex_positions", part.vertices)
-    put("faces", part.faces)
-    if has_normals:
-        put("vertex_normals", part.normals)  # type: ignore[arg-type]
-    if has_uv:
-        put("vertex_texcoords", part.uvs)  # type: ignore[arg-type]
-    if part.vertex_colors is not None:
-        mesh.add_attribute("vertex_color", 3, part.vertex_colors.ravel().tolist())
-    params.update()
-    return mesh
