@@ -10,7 +10,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from worker.engine.camera import PinholeCamera
-from worker.engine.renderer import LightingSpec, Renderer, RenderStats
+from worker.engine.renderer import LightingSpec, Renderer, RenderStats, Window
 
 Image = NDArray[np.float32]
 #: Rectangles (x0, y0, x1, y1, brightness) of the default scene, px of a 128-px image.
@@ -90,7 +90,7 @@ class StubRenderer:
         draw=None,
         model: StubModel | None = None,
         scales: tuple[float, ...] = (1.0,),
-        window_sizes: dict[float, tuple[int, int]] | None = None,
+        window_sizes: dict[tuple[int, float], tuple[int, int]] | None = None,
     ) -> None:
         self.camera = camera
         self.model = model or StubModel()
@@ -103,10 +103,11 @@ class StubRenderer:
     # the real renderer's window geometry (it needs only camera and window_sizes)
     _scaled = Renderer._scaled
     window_camera = Renderer.window_camera
-    window_origin = Renderer.window_origin
+    window_at = Renderer.window_at
+    window_sides = Renderer.window_sides
 
-    def camera_at(self, scale: float, origin: tuple[int, int] | None = None) -> PinholeCamera:
-        return self._scaled(scale) if origin is None else self.window_camera(scale, origin)
+    def camera_at(self, scale: float, window: Window | None = None) -> PinholeCamera:
+        return self._scaled(scale) if window is None else self.window_camera(scale, window)
 
     def set_lighting(self, lighting: LightingSpec) -> None:
         self.lighting = lighting
@@ -118,12 +119,12 @@ class StubRenderer:
         scale: float = 1.0,
         spp: int = 1,
         seed: int = 0,
-        origin: tuple[int, int] | None = None,
+        window: Window | None = None,
     ) -> Image:
-        """``draw`` at ``scale``; with ``origin``, the window of it (the whole image cropped)."""
+        """``draw`` at ``scale``; of ``window``, the whole image cropped to it."""
         self.stats.renders += 1
         image = np.asarray(self._draw(R, t, scale), dtype=np.float32)
-        if origin is None:
+        if window is None:
             return image
-        (x, y), (w, h) = origin, self.window_sizes[scale]
+        (x, y), (w, h) = window.origin, self.window_sizes[(window.side, scale)]
         return image[y : y + h, x : x + w]

@@ -15,6 +15,7 @@ from worker.align.session import Session
 from worker.engine.camera import PinholeCamera
 from worker.engine.exceptions import TooFewFeaturesError
 from worker.engine.posemath import increment_between, skew
+from worker.engine.renderer import Window
 
 CAMERA = PinholeCamera(128, 128, 100.0, 100.0, 63.5, 63.5)
 R0, T0 = np.eye(3), np.array([0.0, 0.0, 10.0])
@@ -112,9 +113,9 @@ class _PlaneRaycaster(StubRenderer):
         t: np.ndarray,
         uv: np.ndarray,
         scale: float = 1.0,
-        origin: tuple[int, int] | None = None,
+        window: Window | None = None,
     ) -> tuple[np.ndarray, ...]:
-        rays = self.camera_at(scale, origin).rays(uv)
+        rays = self.camera_at(scale, window).rays(uv)
         X_cam = rays * (10.0 / rays[:, 2:3])
         hit = np.ones(len(uv), dtype=bool)
         hit[0] = False  # one ray misses the model

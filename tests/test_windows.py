@@ -24,12 +24,13 @@ from test_projection import (
     spheres_model,
 )
 
-from worker.align.pyramid import MAX_WINDOW_FRACTION, WINDOW_STEP_PX, plan_windows
+from worker.align.pyramid import WINDOW_LADDER, WINDOW_MARGIN, ladder_side, plan_windows
 from worker.engine.camera import PinholeCamera
-from worker.engine.renderer import Renderer
+from worker.engine.renderer import Renderer, Window
 
 CAMERA = PinholeCamera(160, 120, 150.0, 150.0, 90.3, 52.6)
 WINDOW = (64, 48)
+SIDE = 64  # the key of the window sensor in these tests
 
 
 def test_a_cropped_camera_images_a_point_where_the_whole_image_does_shifted() -> None:
@@ -43,21 +44,25 @@ def test_a_cropped_camera_images_a_point_where_the_whole_image_does_shifted() ->
         CAMERA.cropped(100, 0, 64, 48)
 
 
-def test_a_window_is_a_square_around_the_target_with_a_margin_rounded_up() -> None:
+def test_the_window_ladder_has_a_square_sensor_per_side_and_scale() -> None:
     camera = PinholeCamera(1920, 1200, 2000.0, 2000.0, 959.5, 599.5)
-    sizes = plan_windows(camera, 700.0, {1.0, 0.5, 0.25})
-    side = sizes[1.0][0] - 2
-    assert side % WINDOW_STEP_PX == 0 and 700 < side < 1.4 * 700
-    assert sizes[1.0] == (side + 2, side + 2)
-    assert sizes[0.5] == (side // 2 + 2, side // 2 + 2)
-    assert sizes[0.25] == (side // 4 + 2, side // 4 + 2)
+    sizes = plan_windows(camera, {1.0, 0.5, 0.25})
+    sides = sorted({side for side, _ in sizes})
+    assert len(sides) == len(WINDOW_LADDER) and max(sides) < 1200
+    for side in sides:
+        assert sizes[(side, 1.0)] == (side + 2, side + 2)
+        assert sizes[(side, 0.25)] == (-(-side // 4) + 2, -(-side // 4) + 2)
+    # consecutive sides differ by 2^(1/4): a chosen window is at most 19 % larger than needed
+    assert all(b / a < 1.2 for a, b in zip(sides, sides[1:], strict=False))
 
 
-def test_no_window_for_a_target_that_fills_the_image() -> None:
-    camera = PinholeCamera(640, 480, 900.0, 900.0, 319.5, 239.5)
-    assert plan_windows(camera, 480.0, {1.0}) == {}  # would cover most of the image
-    (w, h) = plan_windows(camera, 200.0, {1.0})[1.0]
-    assert w * h <= MAX_WINDOW_FRACTION * 640 * 480 and w == h
+def test_the_smallest_side_that_holds_the_target_is_chosen() -> None:
+    sides = [300, 357, 424, 504]
+    assert WINDOW_MARGIN * 250 + 16 <= 300 < WINDOW_MARGIN * 260 + 16
+    assert ladder_side(sides, 250.0) == 300
+    assert ladder_side(sides, 260.0) == 357
+    assert ladder_side(sides, 340.0) == 424
+    assert ladder_side(sides, 480.0) is None  # fills the image: no window
 
 
 @pytest.fixture(scope="module")
@@ -69,7 +74,7 @@ def spheres(variant: str) -> tuple[Renderer, np.ndarray]:
         AMBIENT_ONLY,
         scales=(1.0,),
         spp=SPP,
-        window_sizes={1.0: WINDOW},
+        window_sizes={(SIDE, 1.0): WINDOW},
     )
     return renderer, centres
 
@@ -79,9 +84,9 @@ def test_discs_in_a_window_sit_where_the_cropped_camera_projects_them(
     spheres: tuple[Renderer, np.ndarray], origin: tuple[int, int]
 ) -> None:
     renderer, centres = spheres
-    image = renderer.render(R_MODEL, T_MODEL, origin=origin)
+    image = renderer.render(R_MODEL, T_MODEL, window=Window(SIDE, origin))
     assert image.shape == (WINDOW[1], WINDOW[0], 3)
-    cam = renderer.camera_at(1.0, origin)
+    cam = renderer.camera_at(1.0, Window(SIDE, origin))
     expected = np.array([ellipse_centre(cam, c, R_OVER_D * np.linalg.norm(c)) for c in centres])
     margin = 3.0 * R_OVER_D * cam.fx + 2.0
     inside = np.all((expected > margin) & (expected < np.array(WINDOW) - 1 - margin), axis=1)
@@ -95,7 +100,7 @@ def test_a_window_renders_the_crop_of_the_whole_image(spheres: tuple[Renderer, n
     renderer, _ = spheres
     whole = renderer.render(R_MODEL, T_MODEL)
     x, y = 40, 30
-    window = renderer.render(R_MODEL, T_MODEL, origin=(x, y))
+    window = renderer.render(R_MODEL, T_MODEL, window=Window(SIDE, (x, y)))
     crop = whole[y : y + WINDOW[1], x : x + WINDOW[0]]
     assert crop.sum() > 0
     # Same scene and spp: they differ by sampling noise only (on the discs' edges) ...

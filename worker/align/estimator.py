@@ -180,9 +180,10 @@ def _refine(session: Session, renderer_for: RendererFor, plan: LevelPlan) -> Sto
     'slow', then the rest at full resolution (``options.refine_passes`` in all, plus up to
     MAX_EXTRA_PASSES that 'slow' passes earn)."""
     opts = session.options
+    # The coarse stage has placed the target: window the refinement around its lit part.
+    session.place_window(session.current_view())
     # the first pass at its level, unless it is the only one (the last: at full resolution)
     session.set_level(plan.first_pass if opts.refine_passes > 1 else 1.0)
-    session.centre_window()  # the coarse stage has placed the target: a window around it
     if opts.shading_normals == "auto":
         choose_shading(session, renderer_for)
     try:

@@ -11,8 +11,8 @@ smallest whose short side and target keep a floor: PnP on descriptor matches nee
 (FIRST_PASS_*).
 
 Once the coarse stage has placed the target, the refinement needs only the part of the image
-the target covers: its levels get a *window* (:func:`plan_windows`), a square around the
-target's bounding sphere with a margin, rendered and processed instead of the whole image.
+the target covers: its levels get a *window*, a square around the target's lit part with a
+margin (:func:`window_side`), rendered and processed instead of the whole image.
 """
 
 from __future__ import annotations
@@ -29,16 +29,16 @@ FIRST_PASS_SIDE_PX, FIRST_PASS_TARGET_PX = 240, 120
 #: Shortest side of a perturbation render, px (a small image halved leaves the tracker too
 #: little to learn from).
 MIN_PERTURBATION_SIDE_PX = 256
-#: The refinement's window: the target's apparent diameter at the initial pose times
-#: WINDOW_MARGIN (its range may be that much shorter, and a bounding sphere off the optical axis
-#: projects larger) plus WINDOW_PAD_PX, rounded up to WINDOW_STEP_PX (renderers, and their
-#: compiled kernels, are then shared by targets of about one size).
-WINDOW_MARGIN = 1.2
-WINDOW_PAD_PX = 24
-WINDOW_STEP_PX = 64
-#: A window covering more of the image than this is not used: the refinement takes the whole
-#: image (a target filling the frame, terrain).
-MAX_WINDOW_FRACTION = 0.75
+#: The refinement's window is a square picked from a ladder of sides, fractions of the image's
+#: short side (2^(-k/4), k = 1…8): each side is a sensor of fixed film size, shared by every
+#: estimate with that camera (and its compiled kernels with it), the chosen one at most 19 %
+#: larger than needed.
+WINDOW_LADDER = tuple(2.0 ** (-k / 4.0) for k in range(1, 9))
+#: The side needed: the target's lit extent in the render after the coarse stage times
+#: WINDOW_MARGIN, plus WINDOW_PAD_PX (the pose is then within about a degree and a per cent of
+#: range; the margin keeps what the reference shows lit beyond the render's lit part).
+WINDOW_MARGIN = 1.1
+WINDOW_PAD_PX = 16
 
 
 @dataclass(frozen=True)
@@ -49,8 +49,8 @@ class LevelPlan:
     coarse: float
     first_pass: float
     perturbation: dict[float, float]
-    #: Film size (w, h) of the refinement's window at each of its scales (empty: no window).
-    windows: dict[float, tuple[int, int]] = field(default_factory=dict)
+    #: Film size (w, h) of each window sensor, keyed (ladder side, scale) (empty: no window).
+    windows: dict[tuple[int, float], tuple[int, int]] = field(default_factory=dict)
 
     @property
     def scales(self) -> tuple[float, ...]:
@@ -82,30 +82,37 @@ def plan_levels(
     window: bool = False,
 ) -> LevelPlan:
     """The levels of one estimate (``pyramid`` False: everything at full resolution), with
-    windows for the refinement when ``window`` is set and the target leaves enough out."""
+    the window sensors of the refinement's levels when ``window`` is set."""
     coarse = first = 1.0
     if pyramid:
         coarse = level_for(camera, target_px, COARSE_SIDE_PX, COARSE_TARGET_PX)
         first = level_for(camera, target_px, FIRST_PASS_SIDE_PX, FIRST_PASS_TARGET_PX)
     levels = {first, 1.0}  # the levels that learn a Jacobian
     scales = {lv: perturbation_scale(perturbation, lv, camera) for lv in levels}
-    windows = plan_windows(camera, target_px, levels | set(scales.values())) if window else {}
+    windows = plan_windows(camera, levels | set(scales.values())) if window else {}
     return LevelPlan(coarse, first, scales, windows)
 
 
 def plan_windows(
-    camera: PinholeCamera, target_px: float, scales: set[float]
-) -> dict[float, tuple[int, int]]:
-    """Film sizes (w, h) of the window at each of ``scales``: a square WINDOW_MARGIN times the
-    target's apparent diameter (``target_px``, full-resolution px) plus WINDOW_PAD_PX, rounded
-    up to WINDOW_STEP_PX and clipped to the image; none when it would cover more than
-    MAX_WINDOW_FRACTION of the image."""
-    side = WINDOW_STEP_PX * math.ceil((WINDOW_MARGIN * target_px + WINDOW_PAD_PX) / WINDOW_STEP_PX)
-    w, h = min(camera.width, side), min(camera.height, side)
-    if w * h > MAX_WINDOW_FRACTION * camera.width * camera.height:
-        return {}
+    camera: PinholeCamera, scales: set[float]
+) -> dict[tuple[int, float], tuple[int, int]]:
+    """Film sizes (w, h) of the window sensors: one per ladder side (full-resolution px, see
+    WINDOW_LADDER) and scale in ``scales``, keyed (side, scale); a window is square, clipped
+    to the scaled image."""
+    short = min(camera.width, camera.height)
     sizes = {}
-    for s in scales:
-        cam = camera if s == 1.0 else camera.scaled(s)
-        sizes[s] = (min(cam.width, math.ceil(w * s) + 2), min(cam.height, math.ceil(h * s) + 2))
+    for fraction in WINDOW_LADDER:
+        side = round(fraction * short)
+        for s in scales:
+            cam = camera if s == 1.0 else camera.scaled(s)
+            w, h = math.ceil(side * s) + 2, math.ceil(side * s) + 2
+            sizes[(side, s)] = (min(cam.width, w), min(cam.height, h))
     return sizes
+
+
+def ladder_side(sides: list[int], extent_px: float) -> int | None:
+    """The smallest ladder side that holds a target of lit extent ``extent_px`` (full-
+    resolution px) with its margin; None when none does (the whole image is used)."""
+    need = WINDOW_MARGIN * extent_px + WINDOW_PAD_PX
+    fitting = [side for side in sides if side >= need]
+    return min(fitting) if fitting else None

@@ -20,19 +20,20 @@ from numpy.typing import NDArray
 from schemas.estimate import IterationRecord, Stage
 from schemas.options import EstimateOptions
 from worker.align.features import Described, describe
+from worker.align.pyramid import ladder_side
 from worker.engine.camera import PinholeCamera
 from worker.engine.exceptions import EstimationCancelled
 from worker.engine.images import FloatImage
 from worker.engine.metrics import rotation_error_deg, translation_error
 from worker.engine.photometry import render_to_grey, to_u8
 from worker.engine.posemath import pose_to_schema
-from worker.engine.renderer import LightingSpec, Renderer
+from worker.engine.renderer import LightingSpec, Renderer, Window
 
 Array = NDArray[np.float64]
+#: A pixel belongs to the target's lit part above this fraction of the render's brightest.
+LIT_FRACTION = 0.05
 ProgressCallback = Callable[[IterationRecord, int], None]
 CancelCheck = Callable[[], bool]
-#: A window's top-left pixel in its level's image, or None for the whole image.
-Window = tuple[int, int] | None
 
 
 @dataclass
@@ -45,14 +46,14 @@ class RenderedView:
     linear: FloatImage
     grey: FloatImage
     level: float = 1.0  # image scale relative to the reference (1 = full resolution)
-    origin: Window = None  # the window's top-left pixel in the level's image (None: no window)
+    window: Window | None = None  # the window of the level's image it shows (None: all)
     frame: tuple[int, int] | None = None  # (w, h) of the level's whole image, for a window
 
     def in_frame(self) -> RenderedView:
         """This view on the level's whole image: a window's render pasted onto the sky."""
-        if self.origin is None or self.frame is None:
+        if self.window is None or self.frame is None:
             return self
-        (x, y), (w, h) = self.origin, self.frame
+        (x, y), (w, h) = self.window.origin, self.frame
         hh, ww = self.grey.shape[:2]
         linear = np.zeros((h, w, *self.linear.shape[2:]), dtype=self.linear.dtype)
         grey = np.zeros((h, w), dtype=self.grey.dtype)
@@ -116,12 +117,16 @@ class Session:
     #: renderer has a sensor for every one of them).
     level: float = 1.0
     perturbation_scales: dict[float, float] = field(default_factory=dict)
-    #: Where the window is centred (full-resolution px): the levels the renderer has a window
-    #: for then work on it instead of the whole image (see worker.align.pyramid). None: off.
-    window_centre: tuple[float, float] | None = None
+    #: The window's ladder side and centre (full-resolution px): the levels the renderer has
+    #: that window for then work on it instead of the whole image (worker.align.pyramid), and
+    #: the centre's offset from the image of the model's centre (it follows the pose).
+    #: None: the whole image.
+    window_side: int | None = None
+    window_centre: tuple[float, float] = (0.0, 0.0)
+    window_offset: tuple[float, float] = (0.0, 0.0)
     _pyramid: dict[float, tuple[FloatImage, FloatImage]] = field(default_factory=dict)
     _renders_at_last_record: int = 0
-    _described: dict[tuple[str, int, float, Window], Described] = field(default_factory=dict)
+    _described: dict[tuple[str, int, float, Window | None], Described] = field(default_factory=dict)
     _time_at_last_record: float = field(default_factory=time.perf_counter)
 
     def __post_init__(self) -> None:
@@ -130,29 +135,52 @@ class Session:
     @property
     def camera(self) -> PinholeCamera:
         """The camera at the working level (of its window, if it has one)."""
-        return self.renderer.camera_at(self.level, self.origin)
+        return self.renderer.camera_at(self.level, self.window)
 
     @property
-    def origin(self) -> Window:
-        """The window's top-left pixel at the working level (None: the whole image)."""
-        return self._origin_at(self.level)
+    def window(self) -> Window | None:
+        """The window at the working level (None: the whole image)."""
+        return self._window_at(self.level)
 
-    def _origin_at(self, scale: float) -> Window:
-        if self.window_centre is None or scale not in self.renderer.window_sizes:
+    def _window_at(self, scale: float) -> Window | None:
+        if self.window_side is None:
             return None
-        return self.renderer.window_origin(scale, self.window_centre)
+        return self.renderer.window_at(scale, self.window_side, self.window_centre)
+
+    def place_window(self, view: RenderedView) -> None:
+        """Window the refinement around the target's lit part in ``view`` (a render of the
+        whole image, at any level): the smallest ladder side that holds it with a margin, or
+        the whole image when none does (a target that fills the frame)."""
+        lit = view.grey > LIT_FRACTION * float(view.grey.max())
+        if not self.renderer.window_sizes or view.window is not None or not lit.any():
+            return
+        ys, xs = np.nonzero(lit)
+        sx = self.renderer.camera.width / view.grey.shape[1]
+        sy = self.renderer.camera.height / view.grey.shape[0]
+        extent = max((xs.max() - xs.min() + 1) * sx, (ys.max() - ys.min() + 1) * sy)
+        self.window_side = ladder_side(self.renderer.window_sides, extent)
+        centre = (
+            (xs.min() + xs.max() + 1) / 2 * sx - 0.5,
+            (ys.min() + ys.max() + 1) / 2 * sy - 0.5,
+        )
+        u, v = self._model_centre_px()
+        self.window_offset = (centre[0] - u, centre[1] - v)
+        self.centre_window()
 
     def centre_window(self) -> None:
-        """Centre the window on the target's bounding sphere at the current pose (a no-op
-        when the renderer has no window); the current view is rendered again if it moved."""
-        if not self.renderer.window_sizes:
+        """Move the window with the target: its centre keeps its offset from the image of the
+        model's centre at the current pose. The current view is rendered again if it moved."""
+        if self.window_side is None:
             return
-        centre = self.R @ self.renderer.model.centre + self.t
-        u, v = self.renderer.camera.project(centre)[0]
-        before = self.origin
-        self.window_centre = (float(u), float(v))
-        if self.origin != before:
+        before = self.window
+        u, v = self._model_centre_px()
+        self.window_centre = (u + self.window_offset[0], v + self.window_offset[1])
+        if self.window != before:
             self.current, self.fit = None, None
+
+    def _model_centre_px(self) -> tuple[float, float]:
+        u, v = self.renderer.camera.project(self.R @ self.renderer.model.centre + self.t)[0]
+        return float(u), float(v)
 
     @property
     def ref_image(self) -> FloatImage:
@@ -175,9 +203,9 @@ class Session:
                 grey = cv2.resize(self.reference_grey, size, interpolation=cv2.INTER_AREA)
                 self._pyramid[self.level] = (image, grey)
             image, grey = self._pyramid[self.level]
-        if (origin := self.origin) is None:
+        if (window := self.window) is None:
             return image, grey
-        (x, y), cam = origin, self.camera
+        (x, y), cam = window.origin, self.camera
         return image[y : y + cam.height, x : x + cam.width], grey[
             y : y + cam.height, x : x + cam.width
         ]
@@ -226,7 +254,7 @@ class Session:
         kinds = ("sift", "orb") if detector == "both" else (detector,)
         out = {}
         for kind in kinds:
-            key = (kind, max_features, self.level, self.origin)
+            key = (kind, max_features, self.level, self.window)
             if key not in self._described:
                 self._described[key] = describe(self._reference_u8(), kind, max_features)
             out[kind] = self._described[key]
@@ -248,14 +276,14 @@ class Session:
         One seed for every main render keeps render noise from changing between nearby poses,
         so cost comparisons see the pose and not the sampler.
         """
-        origin = self.origin
-        linear = self._render(R, t, self.level, self.options.spp, self.options.seed, origin)
+        window = self.window
+        linear = self._render(R, t, self.level, self.options.spp, self.options.seed, window)
         grey = render_to_grey(linear)
         frame = None
-        if origin is not None:
+        if window is not None:
             whole = self.renderer.camera_at(self.level)
             frame = (whole.width, whole.height)
-        view = RenderedView(np.asarray(R), np.asarray(t), linear, grey, self.level, origin, frame)
+        view = RenderedView(np.asarray(R), np.asarray(t), linear, grey, self.level, window, frame)
         self.views.setdefault("first", view)
         return view
 
@@ -264,7 +292,7 @@ class Session:
         if (
             self.current is None
             or self.current.level != self.level
-            or self.current.origin != self.origin
+            or self.current.window != self.window
             or not (
                 np.array_equal(self.current.R, self.R) and np.array_equal(self.current.t, self.t)
             )
@@ -276,25 +304,25 @@ class Session:
     def perturbation_camera(self) -> PinholeCamera:
         """The camera of the perturbation renders at the working level (and window)."""
         scale = self.perturbation_scale
-        return self.renderer.camera_at(scale, self._origin_at(scale))
+        return self.renderer.camera_at(scale, self._window_at(scale))
 
     def render_perturbed(self, R: Array, t: Array, seed: int) -> FloatImage:
         """Display-encoded grey render for Jacobian learning (at the level's perturbation
         scale, with the perturbation spp; of the window at that scale, if any)."""
         spp, scale = self.options.perturbation_spp, self.perturbation_scale
-        return render_to_grey(self._render(R, t, scale, spp, seed, self._origin_at(scale)))
+        return render_to_grey(self._render(R, t, scale, spp, seed, self._window_at(scale)))
 
     def raycast(self, R: Array, t: Array, uv: Array) -> tuple[Array, NDArray[np.bool_]]:
         """Surface points (N, 3, model frame) seen through the working level's pixels uv
         (N, 2) at pose (R, t), and which rays hit (see Renderer.raycast)."""
-        return self.renderer.raycast(R, t, uv, self.level, self.origin)
+        return self.renderer.raycast(R, t, uv, self.level, self.window)
 
     def _render(
-        self, R: Array, t: Array, scale: float, spp: int, seed: int, origin: Window = None
+        self, R: Array, t: Array, scale: float, spp: int, seed: int, window: Window | None = None
     ) -> FloatImage:
         self.check_cancel()
         start = self.renderer.stats.seconds
-        linear = self.renderer.render(R, t, scale=scale, spp=spp, seed=seed, origin=origin)
+        linear = self.renderer.render(R, t, scale=scale, spp=spp, seed=seed, window=window)
         self.timings_s["render"] += self.renderer.stats.seconds - start
         self.renders += 1
         full = self.renderer.camera_at(1.0)

@@ -40,8 +40,17 @@ SHADINGS = ("file", "faceted")
 SAMPLER = "multijitter"
 #: Ray batches are padded to a multiple of this, so Dr.Jit reuses one compiled kernel.
 RAY_BATCH = 4096
-#: A sensor: its scale and whether it is a window's.
-SensorKey = tuple[float, bool]
+#: A sensor: its scale, and its window's ladder side (full-resolution px; 0: the whole image).
+SensorKey = tuple[float, int]
+
+
+@dataclass(frozen=True)
+class Window:
+    """A window of the image at one scale: the ladder side whose sensor renders it (full-
+    resolution px) and its top-left pixel in the scaled image."""
+
+    side: int
+    origin: tuple[int, int]
 
 
 @dataclass(frozen=True)
@@ -92,7 +101,7 @@ class Renderer:
         pixel_filter: str = "box",
         px_per_unit: float | None = None,
         shading: str = "file",
-        window_sizes: dict[float, tuple[int, int]] | None = None,
+        window_sizes: dict[tuple[int, float], tuple[int, int]] | None = None,
     ) -> None:
         import mitsuba as mi
 
@@ -113,12 +122,15 @@ class Renderer:
         self.plans: dict[float, RenderPlan] = {s: plan_render(self._scaled(s)) for s in scales}
         # Windows need a square-pixel camera: a warped source film would change its size with
         # the window's position.
-        #: Film size (w, h) of the window sensor at each window scale.
+        #: Film size (w, h) of the window sensor of each (ladder side, scale).
         self.window_sizes = dict(window_sizes or {}) if camera.is_square_pixel else {}
         self._sensors: list[tuple[SensorKey, RenderPlan]] = [
-            ((s, False), plan) for s, plan in self.plans.items()
-        ] + [((s, True), plan_render(self.window_camera(s, (0, 0)))) for s in self.window_sizes]
-        self._origins: dict[float, tuple[int, int]] = dict.fromkeys(self.window_sizes, (0, 0))
+            ((s, 0), plan) for s, plan in self.plans.items()
+        ] + [
+            ((s, side), plan_render(self.window_camera(s, Window(side, (0, 0)))))
+            for side, s in self.window_sizes
+        ]
+        self._origins = dict.fromkeys(self.window_sizes, (0, 0))
         self.stats = RenderStats()
         self._lighting = lighting
         self._R = np.eye(3)  # the attitude of the last pose: the sun turns with the camera
@@ -134,21 +146,27 @@ class Renderer:
     def _scaled(self, scale: float) -> PinholeCamera:
         return self.camera if scale == 1.0 else self.camera.scaled(scale)
 
-    def window_camera(self, scale: float, origin: tuple[int, int]) -> PinholeCamera:
-        """The camera of the window at ``scale`` whose top-left pixel is ``origin`` (in the
-        scaled image's pixels)."""
-        w, h = self.window_sizes[scale]
-        return self._scaled(scale).cropped(origin[0], origin[1], w, h)
+    @property
+    def window_sides(self) -> list[int]:
+        """The ladder sides (full-resolution px) this renderer has window sensors for."""
+        return sorted({side for side, _ in self.window_sizes})
 
-    def window_origin(self, scale: float, centre: tuple[float, float]) -> tuple[int, int]:
-        """The origin of the window at ``scale`` centred as near ``centre`` (full-resolution
-        pixels) as the image's edges allow."""
-        w, h = self.window_sizes[scale]
+    def window_camera(self, scale: float, window: Window) -> PinholeCamera:
+        """The camera of ``window`` at ``scale`` (its origin in the scaled image's pixels)."""
+        w, h = self.window_sizes[(window.side, scale)]
+        return self._scaled(scale).cropped(window.origin[0], window.origin[1], w, h)
+
+    def window_at(self, scale: float, side: int, centre: tuple[float, float]) -> Window | None:
+        """The window of ladder ``side`` at ``scale`` centred as near ``centre`` (full-
+        resolution px) as the image's edges allow; None without a sensor for it."""
+        if (side, scale) not in self.window_sizes:
+            return None
+        w, h = self.window_sizes[(side, scale)]
         cam = self._scaled(scale)
         sx, sy = cam.width / self.camera.width, cam.height / self.camera.height
         x = round((centre[0] + 0.5) * sx - 0.5 - 0.5 * (w - 1))
         y = round((centre[1] + 0.5) * sy - 0.5 - 0.5 * (h - 1))
-        return min(max(x, 0), cam.width - w), min(max(y, 0), cam.height - h)
+        return Window(side, (min(max(x, 0), cam.width - w), min(max(y, 0), cam.height - h)))
 
     # -- scene construction -------------------------------------------------------------
     def scene_dict(self) -> dict[str, object]:
@@ -201,14 +219,15 @@ class Renderer:
         return scene
 
     # -- pose and lighting --------------------------------------------------------------
-    def set_pose(self, R: ArrayLike, t: ArrayLike) -> None:
-        """Place the camera so that the model appears at pose b = R a + t."""
+    def set_pose(self, R: ArrayLike, t: ArrayLike, sensor: int | None = None) -> None:
+        """Place the camera (of every sensor, or of the one about to render) so that the model
+        appears at pose b = R a + t."""
         R = np.asarray(R, dtype=np.float64)
         t = np.asarray(t, dtype=np.float64)
         cam2model = np.eye(4)
         cam2model[:3, :3] = R.T @ CV_FROM_MI
         cam2model[:3, 3] = -R.T @ t
-        for i in range(len(self._sensors)):
+        for i in range(len(self._sensors)) if sensor is None else (sensor,):
             self._put_transform(f"sensor{i}.to_world", cam2model)
         self._R = R
         self._update_sun()
@@ -244,18 +263,21 @@ class Renderer:
         scale: float = 1.0,
         spp: int | None = None,
         seed: int = 0,
-        origin: tuple[int, int] | None = None,
+        window: Window | None = None,
     ) -> NDArray[np.float32]:
         """Linear RGB render (H, W, 3) float32 at pose (R, t), on the scaled camera's grid, or
-        with ``origin`` on the window at that scale whose top-left pixel is ``origin``."""
+        of ``window`` of it."""
         start = time.perf_counter()
-        if origin is None:
-            plan, key = self.plans[scale], (scale, False)
+        if window is None:
+            plan, sensor = self.plans[scale], self._sensor_index[(scale, 0)]
         else:
-            plan, key = self._move_window(scale, origin), (scale, True)
-        self.set_pose(R, t)
+            plan, sensor = (
+                self._move_window(scale, window),
+                self._sensor_index[(scale, window.side)],
+            )
+        self.set_pose(R, t, sensor)
         try:
-            img = self._render_fn(self.scene, self._sensor_index[key], spp or self.spp, seed)
+            img = self._render_fn(self.scene, sensor, spp or self.spp, seed)
         except Exception as exc:
             raise RenderError(f"render failed: {exc}") from exc
         out = warp_to_target(np.asarray(img, dtype=np.float32)[..., :3], plan)
@@ -264,21 +286,22 @@ class Renderer:
         self.stats.by_scale[scale] = self.stats.by_scale.get(scale, 0) + 1
         return out
 
-    def _move_window(self, scale: float, origin: tuple[int, int]) -> RenderPlan:
-        """Point the window sensor at ``scale`` at ``origin`` (its principal point offset; the
+    def _move_window(self, scale: float, window: Window) -> RenderPlan:
+        """Point the sensor of ``window`` at its origin (the principal point offset; the
         caller's set_pose applies the update) and return its plan there."""
-        plan = plan_render(self.window_camera(scale, origin))
-        if self._origins[scale] != origin:
-            i = self._sensor_index[(scale, True)]
+        plan = plan_render(self.window_camera(scale, window))
+        key = (window.side, scale)
+        if self._origins[key] != window.origin:
+            i = self._sensor_index[(scale, window.side)]
             px, py = plan.principal_point_offset
             self.params[f"sensor{i}.principal_point_offset_x"] = -px
             self.params[f"sensor{i}.principal_point_offset_y"] = -py
-            self._origins[scale] = origin
+            self._origins[key] = window.origin
         return plan
 
-    def camera_at(self, scale: float, origin: tuple[int, int] | None = None) -> PinholeCamera:
-        """The target camera of the render at ``scale`` (of its window at ``origin``)."""
-        return self.plans[scale].target if origin is None else self.window_camera(scale, origin)
+    def camera_at(self, scale: float, window: Window | None = None) -> PinholeCamera:
+        """The target camera of the render at ``scale`` (of ``window`` of it)."""
+        return self.plans[scale].target if window is None else self.window_camera(scale, window)
 
     # -- ray casting --------------------------------------------------------------------
     def raycast(
@@ -287,10 +310,10 @@ class Renderer:
         t: ArrayLike,
         uv: ArrayLike,
         scale: float = 1.0,
-        origin: tuple[int, int] | None = None,
+        window: Window | None = None,
     ) -> tuple[Array, NDArray[np.bool_]]:
         """Surface points (N, 3, model frame) seen through pixels uv (N, 2) at pose (R, t), in
-        the image at ``scale`` (its window at ``origin``).
+        the image at ``scale`` (in ``window`` of it).
 
         Returns the points and a mask of the rays that hit the model.
         """
@@ -300,7 +323,7 @@ class Renderer:
         n = len(uv)
         if n == 0:
             return np.zeros((0, 3)), np.zeros(0, dtype=bool)
-        d_model = self.camera_at(scale, origin).rays(uv) @ R  # (Rᵀ d)ᵀ
+        d_model = self.camera_at(scale, window).rays(uv) @ R  # (Rᵀ d)ᵀ
         origin = -R.T @ t
         hit, points = _intersect(self.scene, origin, d_model)
         return points[:n], hit[:n]
