@@ -141,6 +141,8 @@ def _run_pipeline(session: Session, renderer_for: RendererFor, plan: LevelPlan) 
     pnp_reason: StopReason | None = None
     if opts.refine_features != "none":
         session.set_level(plan.coarse)
+    if opts.coarse == "pnp":
+        session.stage_spp = opts.coarse_spp
     check_lit(session.current_view(), session.renderer.lighting)
     if opts.coarse == "pnp":
         run_moment_alignment(session)
@@ -158,7 +160,10 @@ def _run_pipeline(session: Session, renderer_for: RendererFor, plan: LevelPlan) 
             return pnp_reason or "max_iterations"
     if opts.refine_features == "klt" and not coarse_ok:
         run_lm_stage(session, "matches", "coarse", handover_step=COARSE_HANDOVER_STEP)
-    return _refine(session, renderer_for, plan)
+    # the coarse stage's last render (of the whole image), to place the refinement's window
+    window_from = session.current if session.current is not None else session.current_view()
+    session.stage_spp = None  # the refinement renders with options.spp
+    return _refine(session, renderer_for, plan, window_from)
 
 
 def check_lit(view: RenderedView, lighting: LightingSpec) -> None:
@@ -175,13 +180,15 @@ def check_lit(view: RenderedView, lighting: LightingSpec) -> None:
         )
 
 
-def _refine(session: Session, renderer_for: RendererFor, plan: LevelPlan) -> StopReason:
+def _refine(
+    session: Session, renderer_for: RendererFor, plan: LevelPlan, window_from: RenderedView
+) -> StopReason:
     """The refinement passes: the first at its (coarse) level, again there while a pass ends
     'slow', then the rest at full resolution (``options.refine_passes`` in all, plus up to
     MAX_EXTRA_PASSES that 'slow' passes earn)."""
     opts = session.options
     # The coarse stage has placed the target: window the refinement around its lit part.
-    session.place_window(session.current_view())
+    session.place_window(window_from)
     # the first pass at its level, unless it is the only one (the last: at full resolution)
     session.set_level(plan.first_pass if opts.refine_passes > 1 else 1.0)
     if opts.shading_normals == "auto":

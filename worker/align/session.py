@@ -46,6 +46,7 @@ class RenderedView:
     linear: FloatImage
     grey: FloatImage
     level: float = 1.0  # image scale relative to the reference (1 = full resolution)
+    spp: int = 0  # samples per pixel it was rendered with
     window: Window | None = None  # the window of the level's image it shows (None: all)
     frame: tuple[int, int] | None = None  # (w, h) of the level's whole image, for a window
 
@@ -59,7 +60,7 @@ class RenderedView:
         grey = np.zeros((h, w), dtype=self.grey.dtype)
         linear[y : y + hh, x : x + ww] = self.linear
         grey[y : y + hh, x : x + ww] = self.grey
-        return RenderedView(self.R, self.t, linear, grey, self.level)
+        return RenderedView(self.R, self.t, linear, grey, self.level, self.spp)
 
 
 @dataclass(frozen=True)
@@ -117,6 +118,8 @@ class Session:
     #: renderer has a sensor for every one of them).
     level: float = 1.0
     perturbation_scales: dict[float, float] = field(default_factory=dict)
+    #: Samples per pixel of the main renders of the stage in progress (None: options.spp).
+    stage_spp: int | None = None
     #: The window's ladder side and centre (full-resolution px): the levels the renderer has
     #: that window for then work on it instead of the whole image (worker.align.pyramid), and
     #: the centre's offset from the image of the model's centre (it follows the pose).
@@ -163,7 +166,7 @@ class Session:
             (xs.min() + xs.max() + 1) / 2 * sx - 0.5,
             (ys.min() + ys.max() + 1) / 2 * sy - 0.5,
         )
-        u, v = self._model_centre_px()
+        u, v = self._model_centre_px(view.R, view.t)
         self.window_offset = (centre[0] - u, centre[1] - v)
         self.centre_window()
 
@@ -173,13 +176,14 @@ class Session:
         if self.window_side is None:
             return
         before = self.window
-        u, v = self._model_centre_px()
+        u, v = self._model_centre_px(self.R, self.t)
         self.window_centre = (u + self.window_offset[0], v + self.window_offset[1])
         if self.window != before:
             self.current, self.fit = None, None
 
-    def _model_centre_px(self) -> tuple[float, float]:
-        u, v = self.renderer.camera.project(self.R @ self.renderer.model.centre + self.t)[0]
+    def _model_centre_px(self, R: Array, t: Array) -> tuple[float, float]:
+        """Where the model's centre is imaged at pose (R, t), full-resolution px."""
+        u, v = self.renderer.camera.project(R @ self.renderer.model.centre + t)[0]
         return float(u), float(v)
 
     @property
@@ -276,22 +280,30 @@ class Session:
         One seed for every main render keeps render noise from changing between nearby poses,
         so cost comparisons see the pose and not the sampler.
         """
-        window = self.window
-        linear = self._render(R, t, self.level, self.options.spp, self.options.seed, window)
+        window, spp = self.window, self.main_spp
+        linear = self._render(R, t, self.level, spp, self.options.seed, window)
         grey = render_to_grey(linear)
         frame = None
         if window is not None:
             whole = self.renderer.camera_at(self.level)
             frame = (whole.width, whole.height)
-        view = RenderedView(np.asarray(R), np.asarray(t), linear, grey, self.level, window, frame)
+        view = RenderedView(
+            np.asarray(R), np.asarray(t), linear, grey, self.level, spp, window, frame
+        )
         self.views.setdefault("first", view)
         return view
 
+    @property
+    def main_spp(self) -> int:
+        """Samples per pixel of the main renders now."""
+        return self.stage_spp or self.options.spp
+
     def current_view(self) -> RenderedView:
-        """The render at the current pose, level and window (rendered once and kept)."""
+        """The render at the current pose, level, window and spp (rendered once and kept)."""
         if (
             self.current is None
             or self.current.level != self.level
+            or self.current.spp != self.main_spp
             or self.current.window != self.window
             or not (
                 np.array_equal(self.current.R, self.R) and np.array_equal(self.current.t, self.t)
