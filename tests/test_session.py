@@ -83,3 +83,55 @@ def test_parts_are_timed_and_the_reference_is_described_once() -> None:
 def test_a_linear_fit_counts_its_features() -> None:
     fit = LinearFit(np.zeros((6, 6)), np.zeros(6), np.ones(3), np.zeros((3, 2)))
     assert fit.features == 3
+
+
+def test_the_window_holds_the_lit_part_and_follows_the_target() -> None:
+    """A bright 20×16 px patch imaged where the model's centre projects: the window is the
+    smallest ladder side holding it with its margin, centred on it; the reference, the
+    camera and the renders are then the window's, and it moves with the pose."""
+    from worker.align.pyramid import WINDOW_MARGIN, WINDOW_PAD_PX, plan_windows
+
+    camera = PinholeCamera(128, 96, 100.0, 100.0, 63.5, 47.5)
+
+    def draw(R: np.ndarray, t: np.ndarray, scale: float) -> np.ndarray:
+        image = np.zeros((96, 128), dtype=np.float32)
+        u, v = (camera.project(t)[0] + 0.5).astype(int)
+        image[v - 8 : v + 8, u - 10 : u + 10] = 1.0
+        return image
+
+    renderer = StubRenderer(camera, draw, window_sizes=plan_windows(camera, {1.0}))
+    reference = blobs(128)[:96]
+    session = Session(
+        renderer=renderer,  # type: ignore[arg-type]
+        reference=reference,
+        reference_grey=reference,
+        options=EstimateOptions().resolved(),
+        R=R0,
+        t=np.array([0.5, -0.3, 10.0]),
+    )
+    session.place_window(session.current_view())
+    side = session.window_side
+    assert side is not None and side >= WINDOW_MARGIN * 20 + WINDOW_PAD_PX
+    assert [s for s in renderer.window_sides if WINDOW_MARGIN * 20 + WINDOW_PAD_PX <= s][0] == side
+    w = session.window
+    assert w is not None and session.camera.width == renderer.window_sizes[(side, 1.0)][0]
+    u, v = camera.project(session.t)[0]
+    cx, cy = (
+        w.origin[0] + (session.camera.width - 1) / 2,
+        w.origin[1] + (session.camera.height - 1) / 2,
+    )
+    assert abs(cx - u) <= 1.0 and abs(cy - v) <= 1.0  # centred on the patch
+    x, y = w.origin
+    np.testing.assert_array_equal(
+        session.ref_grey, reference[y : y + session.camera.height, x : x + session.camera.width]
+    )
+    view = session.current_view()
+    assert view.window == w and view.grey.shape == (session.camera.height, session.camera.width)
+    pasted = view.in_frame().grey
+    h, w_px = view.grey.shape
+    assert pasted.shape == (96, 128) and pasted.sum() == pytest.approx(view.grey.sum())
+    np.testing.assert_array_equal(pasted[y : y + h, x : x + w_px], view.grey)
+    session.t = session.t + np.array([0.4, 0.0, 0.0])  # 4 px to the right
+    session.centre_window()
+    assert session.window is not None and session.window.origin[0] == x + 4
+    assert session.current_view().window == session.window
