@@ -135,3 +135,16 @@ def test_the_window_holds_the_lit_part_and_follows_the_target() -> None:
     session.centre_window()
     assert session.window is not None and session.window.origin[0] == x + 4
     assert session.current_view().window == session.window
+
+
+def test_a_stage_spp_renders_anew_when_it_changes() -> None:
+    """The coarse stage renders with its own spp (options.coarse_spp); the refinement's first
+    view at the same level and pose is rendered again with options.spp, not reused."""
+    session = make_session()
+    session.stage_spp = 4
+    coarse = session.current_view()
+    assert coarse.spp == 4 and session.current_view() is coarse
+    session.stage_spp = None
+    fine = session.current_view()
+    assert fine is not coarse and fine.spp == session.options.spp == 16
+    assert session.renderer.stats.renders == 7 + 2
