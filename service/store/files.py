@@ -12,12 +12,15 @@ from pathlib import Path
 FILE_MODE = 0o644
 
 
-def write_atomic(path: Path, data: bytes, tmp_prefix: str | None = None) -> Path:
+def write_atomic(
+    path: Path, data: bytes, tmp_prefix: str | None = None, fsync: bool = True
+) -> Path:
     """Write ``data`` to ``path`` so that readers see the old file or the whole new one.
 
     The bytes go to a temporary file in the same directory (created with ``path``'s parents;
-    named ``tmp_prefix…``, by default ``.NAME.….tmp``), reach the disk (fsync) and are moved
-    into place; a failure leaves no temporary file. Returns ``path``.
+    named ``tmp_prefix…``, by default ``.NAME.….tmp``), reach the disk (fsync; skipped with
+    ``fsync=False``, for a caller that fsyncs later, see ``service.store.blobs.flusher``) and
+    are moved into place; a failure leaves no temporary file. Returns ``path``.
     """
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
@@ -26,8 +29,9 @@ def write_atomic(path: Path, data: bytes, tmp_prefix: str | None = None) -> Path
     try:
         with os.fdopen(fd, "wb") as fh:
             fh.write(data)
-            fh.flush()
-            os.fsync(fh.fileno())
+            if fsync:
+                fh.flush()
+                os.fsync(fh.fileno())
         os.chmod(tmp, FILE_MODE)
         os.replace(tmp, path)
     except BaseException:
