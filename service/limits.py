@@ -1,4 +1,12 @@
-"""Request body size limit, enforced while the body streams in (before any parsing)."""
+"""Request body size limit, enforced while the body streams in (before any parsing).
+
+Ours, not FastAPI's ``max_body_size`` (app, router or route): with FastAPI 0.165 / Starlette
+1.10, a body whose Content-Length is over that limit is answered with a plain-text 413 whatever
+our handlers answer (``RequestBodyLimitResponder.send_with_limit`` in
+starlette/middleware/body_limit.py swaps the response for ``PlainTextResponse("Content Too
+Large")``), so the 413 could not be problem details naming ``body``.
+tests/test_framework_limits.py records that behaviour and fails once it changes.
+"""
 
 from __future__ import annotations
 

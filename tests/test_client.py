@@ -4,6 +4,7 @@ and event-stream logic against scripted answers (httpx.MockTransport)."""
 
 from __future__ import annotations
 
+import json
 import os
 import subprocess
 import sys
@@ -15,7 +16,9 @@ import httpx
 import pytest
 import redis
 from conftest import REPO, RedisServer, free_port, start_api
-from service_api_helpers import base_request, png
+from rq import SimpleWorker
+from rq.serializers import JSONSerializer
+from service_api_helpers import KEYS, base_request, png
 
 from schemas.jobs import EstimateCreate
 from service.client import (
@@ -28,6 +31,7 @@ from service.client import (
     UnsupportedMediaType,
     WaitTimeout,
 )
+from service.store import Queues
 
 DB = 12
 
@@ -235,19 +239,39 @@ def test_a_dropped_event_stream_resumes_after_the_last_event() -> None:
     assert seen[1].headers["Last-Event-ID"] == "1" and seen[2].headers["Last-Event-ID"] == "1"
 
 
-def test_rq_info_sees_our_queues(api: Client, redis_server: RedisServer) -> None:
-    """What the README says operators run: `rq info` with the JSON serializer."""
-    api.submit_estimate(png(), base_request())
+def rq_info(url: str, *options: str) -> list[str]:
+    """The lines of `rq info --raw` with the JSON serializer, as the README says to run it."""
     rq = Path(sys.executable).parent / "rq"
-    shown = subprocess.run(
-        [str(rq), "info", "-u", redis_server.url(DB), "-S", "json", "--raw", "--only-queues"],
-        capture_output=True,
-        text=True,
-        timeout=60,
-    )
+    argv = [str(rq), "info", "-u", url, "-S", "json", "--raw", *options]
+    shown = subprocess.run(argv, capture_output=True, text=True, timeout=60)
     assert shown.returncode == 0, shown.stderr
-    lines = {
-        line.split()[1]: line for line in shown.stdout.splitlines() if line.startswith("queue ")
+    return shown.stdout.splitlines()
+
+
+def test_rq_info_sees_our_queues_and_workers(api: Client, redis_server: RedisServer) -> None:
+    """Every queue we use (Queues.all(): renders and estimates, tracks on the latter) and a
+    worker on them, as `rq info` shows them. A queue is listed once a job was queued on it; the
+    API queues a render only while a worker is live, so the render is queued here directly."""
+    url = redis_server.url(DB)
+    r = redis.Redis.from_url(url)
+    queues = Queues(r, KEYS)
+    api.submit_estimate(png(), base_request())
+    render = {"camera": base_request()["camera"], "pose": base_request()["initial_pose"]}
+    queues.enqueue_render("rq-info-render", "demo-sat", json.dumps(render), timeout_s=60)
+    worker = SimpleWorker(
+        queues.all(), connection=r, name="rq-info-worker", serializer=JSONSerializer
+    )
+    worker.register_birth()
+    try:
+        lines = rq_info(url)
+    finally:
+        worker.register_death()
+    counts = {
+        line.split()[1]: int(line.split()[2].rstrip(","))
+        for line in lines
+        if line.startswith("queue ")
     }
-    assert "proxpose-estimates" in lines, shown.stdout
-    assert int(lines["proxpose-estimates"].split()[2].rstrip(",")) >= 1
+    assert {q.name for q in queues.all()} <= counts.keys(), lines
+    assert counts[queues.estimates.name] >= 1 and counts[queues.renders.name] >= 1, counts
+    (shown,) = [line for line in lines if line.startswith("worker rq-info-worker ")]
+    assert all(q.name in shown for q in queues.all()), shown
