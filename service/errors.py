@@ -36,6 +36,9 @@ REDIS_DOWN_RETRY_AFTER_S = 5
 #: FastAPI's form_limits sets the cap but not the answer), so we know it by its text and answer
 #: 413 (tests/test_framework_limits.py fails if the text or the signal changes).
 STARLETTE_PART_TOO_LARGE = "Part exceeded maximum size"
+#: Starlette's message for a form with more file parts than its parser takes (1,000), answered
+#: 400 the same way: a request with that many images is too large for every route we have.
+STARLETTE_TOO_MANY_FILES = "Too many files"
 
 
 class ApiError(HTTPException):
@@ -120,6 +123,10 @@ async def _http_error(request: Request, exc: Exception) -> ProblemResponse:
             "a form field is larger than 1 MiB; send the request JSON as a file part "
             "(curl -F request=@request.json)"
         )
+        errors = [{"loc": ["body"], "msg": msg, "type": "too_large"}]
+        return problem_response(request, 413, msg, code="too_large", errors=errors)
+    if exc.status_code == 400 and str(exc.detail).startswith(STARLETTE_TOO_MANY_FILES):
+        msg = f"too many file parts in one request: {exc.detail}"
         errors = [{"loc": ["body"], "msg": msg, "type": "too_large"}]
         return problem_response(request, 413, msg, code="too_large", errors=errors)
     if isinstance(exc.detail, list):  # FastAPI's field-error shape

@@ -190,6 +190,17 @@ def test_frames_over_the_total_bytes_are_413_naming_frames(
     assert waiting(r) == 0
 
 
+def test_more_file_parts_than_the_form_parser_takes_is_413(
+    client: TestClient, r: redis.Redis
+) -> None:
+    """Starlette's multipart parser stops at 1,000 file parts with a 400 before our count of
+    frames can run: that is a request too large too (413, problem details), nothing enqueued."""
+    frames = frame_files(1001, b"\x89PNG")
+    error = assert_field_error(submit_track(client, frames=frames), 413, ("body",))
+    assert error["type"] == "too_large" and "too many file parts" in error["msg"]
+    assert waiting(r) == 0
+
+
 def test_a_frame_over_the_image_limit_is_413_naming_it(
     client: TestClient, r: redis.Redis, monkeypatch: pytest.MonkeyPatch
 ) -> None:
