@@ -381,9 +381,10 @@ def test_a_non_square_bench_camera_has_an_off_centre_principal_point() -> None:
 def test_costs_are_summarised_per_size() -> None:
     records = [
         {**record("default", 0.1, 0.1), "size": size, "render_s": 0.05,
-         "render_equivalents": re, "peak_memory_mb": mb}
-        for size, re, mb in (("512x512", 14.0, 600.0), ("1920x1200", 5.0, 950.0))
+         "render_equivalents": re, "peak_memory_mb": mb, "memory_rise_mb": rise}
+        for size, re, mb, rise in (("512x512", 14.0, 600.0, 80.0), ("1920x1200", 5.0, 950.0, 310.0))
     ]  # fmt: skip
     groups = {g["group"]: g["methods"]["default"] for g in summarize(records, METHODS)["by_size"]}
     assert groups["512x512"]["render_equivalents_median"] == 14.0
     assert groups["1920x1200"]["peak_memory_mb_max"] == 950.0
+    assert groups["1920x1200"]["memory_rise_mb_max"] == 310.0

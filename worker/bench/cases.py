@@ -26,7 +26,12 @@ import numpy as np
 
 from schemas.camera import Camera
 from schemas.options import EstimateOptions
-from worker.bench.costs import full_render_seconds, peak_memory_mb, reset_peak_memory
+from worker.bench.costs import (
+    full_render_seconds,
+    peak_memory_mb,
+    reset_peak_memory,
+    resident_memory_mb,
+)
 from worker.bench.records import failure, outcome
 from worker.bench.synth import Case, CaseSpec, make_case
 from worker.bench.terrain import TERRAIN_MODELS, make_terrain_case, terrain_model_path
@@ -312,6 +317,7 @@ def run_method(
     request = case.request.model_copy(update={"options": spec.options(seed=seed)})
     record: dict[str, Any] = {**fields, "method": spec.label, "estimator_seed": seed}
     reset_peak_memory()
+    resident = resident_memory_mb()
     start = time.perf_counter()
     try:
         result = estimate(model, reference, request).result
@@ -324,7 +330,8 @@ def run_method(
     costs = {
         "seconds": seconds,
         "render_equivalents": seconds / fields["render_s"] if fields.get("render_s") else None,
-        "peak_memory_mb": peak_memory_mb(),
+        "peak_memory_mb": (peak := peak_memory_mb()),
+        "memory_rise_mb": peak - resident if peak is not None and resident is not None else None,
     }
     return {**record, **outcome(result), **costs}
 

@@ -4,7 +4,9 @@ A *render-equivalent* is the time of one full-resolution render of the case's mo
 its camera (the estimator's main spp), measured in the same run: engine seconds ÷ that time
 says how many full renders' worth an estimate takes, whatever the machine. Peak memory is the
 process's resident high-water mark during the estimate (Linux: reset through
-/proc/self/clear_refs, read from VmHWM); elsewhere it is not reported.
+/proc/self/clear_refs, read from VmHWM), and its *rise*: that mark less the resident memory when
+the estimate started (what the estimate itself added to a process that already held the
+libraries, the cached renderers and the earlier cases); elsewhere neither is reported.
 """
 
 from __future__ import annotations
@@ -55,9 +57,18 @@ def reset_peak_memory() -> None:
 
 def peak_memory_mb() -> float | None:
     """The resident-memory high-water mark since the last reset, MiB (None: unknown)."""
+    return _status_mb("VmHWM:")
+
+
+def resident_memory_mb() -> float | None:
+    """The process's resident memory now, MiB (None: unknown)."""
+    return _status_mb("VmRSS:")
+
+
+def _status_mb(field: str) -> float | None:
     try:
         for line in _STATUS.read_text().splitlines():
-            if line.startswith("VmHWM:"):
+            if line.startswith(field):
                 return int(line.split()[1]) / 1024.0
     except (OSError, ValueError):
         pass

@@ -125,8 +125,8 @@ def markdown(summary: dict[str, Any], config: dict[str, Any], env: dict[str, Any
 
 SIZE_HEADER = (
     "| size | method | success | rot. median | transl. median | renders | s / estimate "
-    "| full render, s | render-equivalents | peak memory, MiB |\n"
-    "|---|---|---|---|---|---|---|---|---|---|\n"
+    "| full render, s | render-equivalents | peak memory, MiB | memory rise, MiB |\n"
+    "|---|---|---|---|---|---|---|---|---|---|---|\n"
 )
 
 
@@ -148,6 +148,7 @@ def size_table(summary: dict[str, Any]) -> str:
                 _num(s["render_s_median"]),
                 _num(s["render_equivalents_median"]),
                 _num(s["peak_memory_mb_max"]),
+                _num(s.get("memory_rise_mb_max")),
             ]
             rows += "| " + " | ".join(cells) + " |\n"
     if not rows:
@@ -155,7 +156,9 @@ def size_table(summary: dict[str, Any]) -> str:
     return (
         "\n### Cost by image size\n\nRender-equivalents: engine seconds ÷ the time of one "
         "full-resolution render of the same case (main spp), measured in the same run; "
-        f"medians. Peak memory: the process's resident high-water mark, the largest.\n\n"
+        "medians. Peak memory: the process's resident high-water mark, the largest; memory "
+        "rise: that mark less the resident memory when the estimate started (what the "
+        f"estimate itself added), the largest.\n\n"
         f"{SIZE_HEADER}{rows}"
     )
 

@@ -101,6 +101,7 @@ def _offset_stats(records: list[Record]) -> Stats:
         "render_equivalents_median": _pct((r.get("render_equivalents") for r in returned), 50),
         "render_s_median": _pct((r.get("render_s") for r in records), 50),
         "peak_memory_mb_max": _max(r.get("peak_memory_mb") for r in returned),
+        "memory_rise_mb_max": _max(r.get("memory_rise_mb") for r in returned),
     }
 
 
