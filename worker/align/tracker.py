@@ -64,8 +64,13 @@ MIN_KEPT_FRACTION = 0.5
 #: Attitude change (deg) since the Jacobian was learned after which it is learned again.
 RELEARN_ROTATION_DEG = 6.0
 
+#: Median image motion (px) of an LM step below which a tracked frame takes it without a
+#: trial render (see worker.align.refine: the step from a good prediction is a fraction of a
+#: pixel, and its trial only re-measured the features).
+LINEAR_STEP_PX = 0.5
+
 #: The LM's stop rules that count as converged.
-CONVERGED = ("step_below_epsilon", "cost_converged")
+CONVERGED = ("step_below_epsilon", "cost_converged", "linear_step")
 
 Pose = tuple[Array, Array]
 
@@ -198,18 +203,17 @@ class Tracker:
         session = self._session(memory.session, image, (R_p, t_p), truth)
         relearned = False
         try:
-            reason = run_lm_stage(
-                session, "klt", "refine", fit_sun=False, state=self._carry(memory, session)
-            )
+            reason = self._lm(session, self._carry(memory, session))
             if reason not in CONVERGED:
                 relearned = True
                 session.options = session.options.model_copy(
                     update={"max_iterations": len(session.history) + FRAME_ITERATIONS}
                 )
-                reason = run_lm_stage(
-                    session, "klt", "refine", fit_sun=False, state=self._fresh(session)
-                )
-            score = alignment_score(session.ref_grey, session.current_view().grey)
+                reason = self._lm(session, self._fresh(session))
+            # The last render referees the frame: after a linear step it is the step's start,
+            # a fraction of a pixel away.
+            assert session.current is not None
+            score = alignment_score(session.ref_grey, session.current.grey)
         except TooFewFeaturesError:
             score, reason = -1.0, "too_few_features"
         fit = session.fit
@@ -243,6 +247,12 @@ class Tracker:
             errors_between(truth, session.R, session.t),
             relearned,
             reason,
+        )
+
+    @staticmethod
+    def _lm(session: Session, state: StageState) -> str:
+        return run_lm_stage(
+            session, "klt", "refine", fit_sun=False, state=state, linear_step_px=LINEAR_STEP_PX
         )
 
     def _session(
