@@ -112,8 +112,9 @@ class TrackedFeatures:
         tracked from the reference it was found in (the anchor, so that frame-to-frame errors
         do not add up) into the new one, starting from where ``motion`` (k, 2), their predicted
         image motion since the last frame, puts it; ``view`` is the render at the predicted
-        pose (it sets the tone scale and the whitening). Returns the carried set (only the
-        features found again) and which of this set's features it keeps."""
+        pose (it sets the contrast scale and the whitening; the tone curve stays this set's).
+        Returns the carried set (only the features found again) and which of this set's
+        features it keeps."""
         new = copy.copy(self)
         anchor = self.anchor
         ref_grey = on_render_scale(session.ref_image, self.tone_curve)

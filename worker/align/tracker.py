@@ -3,13 +3,15 @@
 The first frame is a full estimate from the request's initial pose. Every later frame starts
 from a constant-velocity prediction and keeps the previous frame's features (each tracked from
 the previous image into the new one, starting where the learned Jacobian predicts it moved),
-their learned Jacobian rows (Broyden-updated by every accepted step), the fitted sun and the
-sharpness match; so a frame costs a render at the prediction and a trial or two, not a full
-estimate. The learned-Jacobian LM stays the core: the rows are the paper's, learned from
-perturbed renders, and learned again (with the features made afresh) once the attitude has
-turned RELEARN_ROTATION_DEG from where they were learned or too few features are left.
+their learned Jacobian rows (Broyden-updated by every accepted step), the fitted sun, the tone
+curve and the sharpness match; so a frame costs a render at the prediction, and a trial only
+when the LM's step from there moves some feature by LINEAR_STEP_PX or more (a smaller step is
+taken on the linear model: its trial would only re-measure the features), not a full estimate.
+The learned-Jacobian LM stays the core: the rows are the paper's, learned from perturbed
+renders, and learned again (with the features made afresh) once the attitude has turned
+RELEARN_ROTATION_DEG from where they were learned or too few features are left.
 
-Each frame is refereed: an LM that does not converge, a final render that explains the image
+Each frame is refereed: an LM that does not converge, a last render that explains the image
 poorly (alignment score below MIN_TRACK_SCORE, or far below the last frames') or too few
 features mark it lost, and the tracker re-initialises with a full estimate ('reinitialised'),
 from where the LM got to when that still aligns, else from the prediction; when that fails
