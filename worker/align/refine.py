@@ -243,10 +243,10 @@ def run_lm_stage(
     PnP coarse stage. ``fit_sun`` (default: options.fit_sun, in the 'refine' stage) solves for
     the sun's tilt too; without it the sun stays as the renderer has it. ``state`` starts the
     stage from features and a Jacobian made before (a tracker's previous frame); the stage's
-    state is kept in ``session.last_stage``. With ``linear_step_px``, a step that moves no
-    feature by as much as that (px) is taken without a trial render and ends the stage
-    ('linear_step', see :func:`_take_linear_step`); the session's current render then stays
-    at the pose the step started from.
+    state is kept in ``session.last_stage``. With ``linear_step_px``, a first step that moves
+    no feature by as much as that (px) is taken without a trial render and ends the stage
+    ('linear_step', see :func:`_take_linear_step`; a tracker's stage starts at a prediction);
+    the session's current render then stays at the pose the step started from.
     """
     opts = session.options
     damping = _Damping(opts.lambda_init)
@@ -268,6 +268,7 @@ def run_lm_stage(
         if linear_step_px is not None and sun is None and _motion_px(system) < linear_step_px:
             _take_linear_step(session, stage, st, system, step, damping.lam)
             return "linear_step"
+        linear_step_px = None  # only a stage's first step: after a trial the LM goes on
         trial = _trial(session, st, system, sun)
         outcome = _judge(session, stage, st, system, trial, step, damping, handover_step)
         if outcome is not None:
