@@ -120,6 +120,9 @@ class Tracker:
     ) -> None:
         self.model, self.request, self.should_cancel = model, request, should_cancel
         self.poses: list[Pose] = []
+        #: The motion into the last tracked frame (an increment, [δq, δt]): what predicted()
+        #: adds to the last pose.
+        self._velocity: Array | None = None
         self._misalignment: list[float] = []
         self._memory: _Memory | None = None
 
@@ -135,6 +138,8 @@ class Tracker:
             frame = self._full(image, (R0, t0), truth, index, start, "reinitialised")
         else:
             frame = self._tracked(image, truth, index, start)
+        if frame.status == "tracked" and self.poses:
+            self._velocity = increment_between(*self.poses[-1], frame.R, frame.t)
         self.poses.append((frame.R, frame.t))
         if frame.status != "lost":
             self._misalignment.append(1.0 - frame.alignment_score)
@@ -147,12 +152,13 @@ class Tracker:
         return 1.0 - score > max(MISALIGNMENT_GROWTH * level, MIN_MISALIGNMENT)
 
     def predicted(self) -> Pose:
-        """The next pose by constant velocity (the last pose when there is only one)."""
+        """The next pose by constant velocity: the last pose moved by the last tracked frame's
+        motion (the last pose itself before any). The motion into a re-initialised frame is
+        not a velocity: after a jump it would predict the jump again."""
         R1, t1 = self.poses[-1]
-        if len(self.poses) < 2:
+        if self._velocity is None:
             return R1, t1
-        R0, t0 = self.poses[-2]
-        return apply_increment(R1, t1, increment_between(R0, t0, R1, t1))
+        return apply_increment(R1, t1, self._velocity)
 
     # -- a full estimate (first frame, re-initialisation) ---------------------------------
     def _full(
