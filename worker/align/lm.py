@@ -101,16 +101,20 @@ def ransac_increment(
     k = len(r) // 2
     if k <= RANSAC_SET_SIZE:
         return np.ones(k, dtype=bool)
+    # All sets solved at once (one batched SVD, one matrix product for every residual): the
+    # same draws and the same choice as one lstsq per set, some ten times faster.
+    picks = np.array([rng.choice(k, RANSAC_SET_SIZE, replace=False) for _ in range(iterations)])
+    rows = np.stack([2 * picks, 2 * picks + 1], axis=-1).reshape(iterations, -1)
+    U, sv, Vt = np.linalg.svd(J[rows], full_matrices=False)  # (n, 2s, 6), (n, 6), (n, 6, 6)
+    solvable = sv[:, -1] >= 1e-9 * sv[:, 0]
+    inv = np.divide(1.0, sv, out=np.zeros_like(sv), where=solvable[:, None])
+    dps = np.einsum("nji,nj->ni", Vt, np.einsum("nji,nj->ni", U, r[rows]) * inv)  # (n, 6)
+    res = r[None, :] - dps @ J.T  # (n, 2k)
+    counts = (np.hypot(res[:, 0::2], res[:, 1::2]) < threshold_px).sum(axis=1)
+    counts[~solvable] = -1
     best = np.zeros(k, dtype=bool)
-    for _ in range(iterations):
-        pick = rng.choice(k, RANSAC_SET_SIZE, replace=False)
-        rows = np.concatenate([[2 * i, 2 * i + 1] for i in pick])
-        dp, *_, sv = np.linalg.lstsq(J[rows], r[rows], rcond=None)
-        if sv[-1] < 1e-9 * sv[0]:
-            continue
-        inl = feature_norms(r - J @ dp) < threshold_px
-        if inl.sum() > best.sum():
-            best = inl
+    if counts.max() > 0:
+        best = feature_norms(r - J @ dps[int(np.argmax(counts))]) < threshold_px
     if best.sum() >= 3:
         dp = lm_step(J, r, 0.0, best.astype(np.float64))
         best = feature_norms(r - J @ dp) < threshold_px

@@ -39,7 +39,13 @@ from worker.engine.posemath import apply_increment, step_norm
 
 Array = NDArray[np.float64]
 Outcome = Literal[
-    "step_below_epsilon", "cost_converged", "max_iterations", "stalled", "handover", "slow"
+    "step_below_epsilon",
+    "cost_converged",
+    "max_iterations",
+    "stalled",
+    "handover",
+    "slow",
+    "linear_step",
 ]
 
 #: Median predicted feature motion (px) below which a step does not update the Jacobian.
@@ -225,6 +231,7 @@ def run_lm_stage(
     handover_step: float | None = None,
     fit_sun: bool | None = None,
     state: StageState | None = None,
+    linear_step_px: float | None = None,
 ) -> Outcome:
     """Learned-Jacobian LM from the session's pose until a stop rule fires.
 
@@ -236,7 +243,10 @@ def run_lm_stage(
     PnP coarse stage. ``fit_sun`` (default: options.fit_sun, in the 'refine' stage) solves for
     the sun's tilt too; without it the sun stays as the renderer has it. ``state`` starts the
     stage from features and a Jacobian made before (a tracker's previous frame); the stage's
-    state is kept in ``session.last_stage``.
+    state is kept in ``session.last_stage``. With ``linear_step_px``, a first step that moves
+    no feature by as much as that (px) is taken without a trial render and ends the stage
+    ('linear_step', see :func:`_take_linear_step`; a tracker's stage starts at a prediction);
+    the session's current render then stays at the pose the step started from.
     """
     opts = session.options
     damping = _Damping(opts.lambda_init)
@@ -255,6 +265,10 @@ def run_lm_stage(
             # converged, and no render is spent on a trial.
             session.record(stage, system.cost, step, damping.lam, False, int(system.active.sum()))
             return "step_below_epsilon" if step < opts.epsilon else "cost_converged"
+        if linear_step_px is not None and sun is None and _motion_px(system) < linear_step_px:
+            _take_linear_step(session, stage, st, system, step, damping.lam)
+            return "linear_step"
+        linear_step_px = None  # only a stage's first step: after a trial the LM goes on
         trial = _trial(session, st, system, sun)
         outcome = _judge(session, stage, st, system, trial, step, damping, handover_step)
         if outcome is not None:
@@ -314,6 +328,29 @@ def _linear_system(session: Session, st: StageState, lam: float, sun: SunTilt | 
             J = np.hstack([J, _whiten(A, st.sun_J[_rows(active)])])
         dp_all = _step(J, r, lam, w, sun)
     return _System(active, A, J_px, J, r, w, weighted_cost(r, w), dp_all)
+
+
+def _motion_px(system: _System) -> float:
+    """The largest image motion (px) the linear model predicts for the system's step (not
+    the median: an approach moves the features near the centre of expansion little)."""
+    return float(np.max(np.hypot(*(system.J_px @ system.dp).reshape(-1, 2).T), initial=0.0))
+
+
+def _take_linear_step(
+    session: Session, stage: Stage, st: StageState, system: _System, step: float, lam: float
+) -> None:
+    """Move by the system's step without rendering there: the features move as the learned
+    rows predict, and the fit keeps the residuals the linear model leaves. For a step of a
+    fraction of a pixel the linear model is as good as a measurement (a trial would re-measure
+    the same features at a sub-pixel offset, and teach the Jacobian nothing: see
+    BROYDEN_MIN_MOTION_PX)."""
+    session.R, session.t = apply_increment(session.R, session.t, system.dp)
+    moved = (system.J_px @ system.dp).reshape(-1, 2)
+    st.h = st.h.copy()
+    st.h[system.active] += moved
+    r = system.r - system.J @ system.dp_all
+    session.fit = LinearFit(system.J, r, system.w, st.h[system.active])
+    session.record(stage, weighted_cost(r, system.w), step, lam, True, int(system.active.sum()))
 
 
 def _trial(session: Session, st: StageState, system: _System, sun: SunTilt | None) -> _Trial:

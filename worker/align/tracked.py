@@ -33,7 +33,9 @@ from worker.engine.photometry import (
     local_normalise_f,
     normalise_pair,
     normalise_render,
-    reference_on_render_scale,
+    normalised_to_u8,
+    on_render_scale,
+    reference_tone_curve,
 )
 
 Array = NDArray[np.float64]
@@ -63,12 +65,17 @@ class TrackedFeatures:
     """Corners and edge points of the reference, found in each render by tracking."""
 
     def __init__(self, session: Session, view: RenderedView) -> None:
+        self._grey: tuple[RenderedView, Array] | None = None
+        self._normalised_view: tuple[RenderedView, Array, NDArray[np.uint8], Array] | None = None
         pair = normalise_pair(session.ref_grey, view.grey)
         mask = content_mask(pair.ref_smooth) & content_mask(pair.render_smooth)
         # The reference's tone curve is mapped onto the render's first: contrast normalisation
         # removes local gain and offset but not a different gamma, which shifts every blurred
         # edge towards its dark side.
-        ref_linear = srgb_decode(reference_on_render_scale(session.ref_image, view.linear))
+        #: The curve, kept for the sets carried from this one (a camera's response does not
+        #: change from frame to frame; fitting it again costs more than the rest of a frame).
+        self.tone_curve = reference_tone_curve(session.ref_image, view.linear)
+        ref_linear = srgb_decode(on_render_scale(session.ref_image, self.tone_curve))
         # Equal sharpness too: a corner blurred differently in the two images sits elsewhere.
         # Blur acts on light, so it is measured and applied in linear units, then encoded.
         self.blur_render = relative_blur(ref_linear, to_grey(view.linear))
@@ -78,11 +85,9 @@ class TrackedFeatures:
         # Corners of the contrast-normalised reference: dim parts (a dark solar array) then
         # give corners as readily as the bright ones, which spreads the features out.
         self.corners = detect_corners(self.ref8, session.options.max_features, mask)
-        render_f = local_normalise_f(self._render_grey(view), self.scale)
+        render8, render_f = self._normalised(view)
         self.ref_f = local_normalise_f(ref_grey, self.scale)
-        A_corners = structure_whitening(
-            local_normalise(self._render_grey(view), self.scale), self.corners
-        )
+        A_corners = structure_whitening(render8, self.corners)
         # Edge points come from the noise-free render; their reference positions are where
         # the reference shows the same edge, across it.
         pts, self.normals = detect_edge_points(
@@ -107,15 +112,15 @@ class TrackedFeatures:
         tracked from the reference it was found in (the anchor, so that frame-to-frame errors
         do not add up) into the new one, starting from where ``motion`` (k, 2), their predicted
         image motion since the last frame, puts it; ``view`` is the render at the predicted
-        pose (it sets the tone scale and the whitening). Returns the carried set (only the
-        features found again) and which of this set's features it keeps."""
+        pose (it sets the contrast scale and the whitening; the tone curve stays this set's).
+        Returns the carried set (only the features found again) and which of this set's
+        features it keeps."""
         new = copy.copy(self)
         anchor = self.anchor
-        ref_linear = srgb_decode(reference_on_render_scale(session.ref_image, view.linear))
+        ref_grey = on_render_scale(session.ref_image, self.tone_curve)
         new.scale = contrast_scale(self._render_grey(view))
-        ref_grey = srgb_encode(ref_linear)
-        new.ref8 = local_normalise(ref_grey, new.scale)
         new.ref_f = local_normalise_f(ref_grey, new.scale)
+        new.ref8 = normalised_to_u8(new.ref_f)
         kc = len(self.corners)
         corners, ok_c = track(
             anchor.ref8, new.ref8, anchor.corners[self.anchor_corners], self.corners + motion[:kc]
@@ -130,17 +135,28 @@ class TrackedFeatures:
         new.edges = (self.edges + s[:, None] * self.normals)[ok_e]
         new.normals = self.normals[ok_e]
         new.x_ref = np.vstack([new.corners, new.edges])
-        A_corners = structure_whitening(
-            local_normalise(self._render_grey(view), new.scale), new.corners
-        )
+        A_corners = structure_whitening(new._normalised(view)[0], new.corners)
         new.A = np.concatenate([A_corners, self.A[kc:][ok_e]])
         new.feature_normals = self.feature_normals[keep]
         return new, keep
 
     def _render_grey(self, view: RenderedView) -> Array:
-        if self.blur_render > 0.05:
-            return srgb_encode(_blurred(to_grey(view.linear), self.blur_render))
-        return view.grey
+        """The render's grey at the reference's sharpness (kept for the last view)."""
+        if self.blur_render <= 0.05:
+            return view.grey
+        if self._grey is None or self._grey[0] is not view:
+            self._grey = (view, srgb_encode(_blurred(to_grey(view.linear), self.blur_render)))
+        return self._grey[1]
+
+    def _normalised(self, view: RenderedView) -> tuple[NDArray[np.uint8], Array]:
+        """The render's grey contrast-normalised on this set's scale, 8-bit (for KLT) and
+        float (for edges); kept for the last view and scale, which a carried set's whitening
+        and its first measurement share."""
+        cached = self._normalised_view
+        if cached is None or cached[0] is not view or cached[1] is not self.scale:
+            f = local_normalise_f(self._render_grey(view), self.scale)
+            cached = self._normalised_view = (view, self.scale, normalised_to_u8(f), f)
+        return cached[2], cached[3]
 
     def measure(self, view: RenderedView, guess: Array | None) -> tuple[Array, NDArray[np.bool_]]:
         """Where each reference corner is in ``view``, found by tracking the other way.
@@ -150,13 +166,13 @@ class TrackedFeatures:
         side of an edge. So the render (noise-free) is tracked into the reference from the
         current guess h, and h moves by what is left, x̃ − x'(h), until that is negligible.
         """
-        grey = self._render_grey(view)
+        render8, render_f = self._normalised(view)
         guess = self.x_ref if guess is None else guess
         kc = len(self.corners)
-        hc, okc = self._measure_corners(local_normalise(grey, self.scale), guess[:kc])
+        hc, okc = self._measure_corners(render8, guess[:kc])
         n = self.normals
         s0 = np.einsum("ki,ki->k", self.edges - guess[kc:], n)
-        s, oke = normal_shift(local_normalise_f(grey, self.scale), self.ref_f, self.edges, n, s0)
+        s, oke = normal_shift(render_f, self.ref_f, self.edges, n, s0)
         he = self.edges - s[:, None] * n
         return np.vstack([hc, he]), np.concatenate([okc, oke])
 

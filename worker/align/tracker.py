@@ -3,13 +3,15 @@
 The first frame is a full estimate from the request's initial pose. Every later frame starts
 from a constant-velocity prediction and keeps the previous frame's features (each tracked from
 the previous image into the new one, starting where the learned Jacobian predicts it moved),
-their learned Jacobian rows (Broyden-updated by every accepted step), the fitted sun and the
-sharpness match; so a frame costs a render at the prediction and a trial or two, not a full
-estimate. The learned-Jacobian LM stays the core: the rows are the paper's, learned from
-perturbed renders, and learned again (with the features made afresh) once the attitude has
-turned RELEARN_ROTATION_DEG from where they were learned or too few features are left.
+their learned Jacobian rows (Broyden-updated by every accepted step), the fitted sun, the tone
+curve and the sharpness match; so a frame costs a render at the prediction, and a trial only
+when the LM's step from there moves some feature by LINEAR_STEP_PX or more (a smaller step is
+taken on the linear model: its trial would only re-measure the features), not a full estimate.
+The learned-Jacobian LM stays the core: the rows are the paper's, learned from perturbed
+renders, and learned again (with the features made afresh) once the attitude has turned
+RELEARN_ROTATION_DEG from where they were learned or too few features are left.
 
-Each frame is refereed: an LM that does not converge, a final render that explains the image
+Each frame is refereed: an LM that does not converge, a last render that explains the image
 poorly (alignment score below MIN_TRACK_SCORE, or far below the last frames') or too few
 features mark it lost, and the tracker re-initialises with a full estimate ('reinitialised'),
 from where the LM got to when that still aligns, else from the prediction; when that fails
@@ -64,8 +66,15 @@ MIN_KEPT_FRACTION = 0.5
 #: Attitude change (deg) since the Jacobian was learned after which it is learned again.
 RELEARN_ROTATION_DEG = 6.0
 
+#: Image motion (px, the largest of any feature) of the LM's first step below which a tracked
+#: frame takes it without a trial render (worker.align.refine's linear_step_px): the step from
+#: a good prediction moves the features by a few hundredths of a pixel, and its trial would
+#: only measure them again (≤ 0.18 px on the ISS sequences at 512²; on a 192 × 144 sequence
+#: steps of 0.3–0.5 px still gained 0.1–0.2° from a trial).
+LINEAR_STEP_PX = 0.25
+
 #: The LM's stop rules that count as converged.
-CONVERGED = ("step_below_epsilon", "cost_converged")
+CONVERGED = ("step_below_epsilon", "cost_converged", "linear_step")
 
 Pose = tuple[Array, Array]
 
@@ -115,6 +124,9 @@ class Tracker:
         self.model, self.should_cancel = model, should_cancel
         self.request = request.model_copy(update={"options": options})
         self.poses: list[Pose] = []
+        #: The motion into the last tracked frame (an increment, [δq, δt]): what predicted()
+        #: adds to the last pose.
+        self._velocity: Array | None = None
         self._misalignment: list[float] = []
         self._memory: _Memory | None = None
 
@@ -130,6 +142,8 @@ class Tracker:
             frame = self._full(image, (R0, t0), truth, index, start, "reinitialised")
         else:
             frame = self._tracked(image, truth, index, start)
+        if frame.status == "tracked" and self.poses:
+            self._velocity = increment_between(*self.poses[-1], frame.R, frame.t)
         self.poses.append((frame.R, frame.t))
         if frame.status != "lost":
             self._misalignment.append(1.0 - frame.alignment_score)
@@ -142,12 +156,13 @@ class Tracker:
         return 1.0 - score > max(MISALIGNMENT_GROWTH * level, MIN_MISALIGNMENT)
 
     def predicted(self) -> Pose:
-        """The next pose by constant velocity (the last pose when there is only one)."""
+        """The next pose by constant velocity: the last pose moved by the last tracked frame's
+        motion (the last pose itself before any). The motion into a re-initialised frame is
+        not a velocity: after a jump it would predict the jump again."""
         R1, t1 = self.poses[-1]
-        if len(self.poses) < 2:
+        if self._velocity is None:
             return R1, t1
-        R0, t0 = self.poses[-2]
-        return apply_increment(R1, t1, increment_between(R0, t0, R1, t1))
+        return apply_increment(R1, t1, self._velocity)
 
     # -- a full estimate (first frame, re-initialisation) ---------------------------------
     def _full(
@@ -202,18 +217,17 @@ class Tracker:
         session = self._session(memory.session, image, (R_p, t_p), truth)
         relearned = False
         try:
-            reason = run_lm_stage(
-                session, "klt", "refine", fit_sun=False, state=self._carry(memory, session)
-            )
+            reason = self._lm(session, self._carry(memory, session))
             if reason not in CONVERGED:
                 relearned = True
                 session.options = session.options.model_copy(
                     update={"max_iterations": len(session.history) + FRAME_ITERATIONS}
                 )
-                reason = run_lm_stage(
-                    session, "klt", "refine", fit_sun=False, state=self._fresh(session)
-                )
-            score = alignment_score(session.ref_grey, session.current_view().grey)
+                reason = self._lm(session, self._fresh(session))
+            # The last render referees the frame: after a linear step it is the step's start,
+            # a fraction of a pixel away.
+            assert session.current is not None
+            score = alignment_score(session.ref_grey, session.current.grey)
         except TooFewFeaturesError:
             score, reason = -1.0, "too_few_features"
         fit = session.fit
@@ -247,6 +261,12 @@ class Tracker:
             errors_between(truth, session.R, session.t),
             relearned,
             reason,
+        )
+
+    @staticmethod
+    def _lm(session: Session, state: StageState) -> str:
+        return run_lm_stage(
+            session, "klt", "refine", fit_sun=False, state=state, linear_step_px=LINEAR_STEP_PX
         )
 
     def _session(

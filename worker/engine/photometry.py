@@ -102,12 +102,31 @@ def reference_on_render_scale(reference: FloatImage, render_linear: FloatImage) 
     gamma-encoded channels is not a function of the mean of sRGB-encoded ones), and its error
     moves the edges between differently coloured materials.
     """
+    curve = reference_tone_curve(reference, render_linear)
+    if render_linear.ndim == 2:
+        return apply_tone_curve(to_grey(reference), curve)
+    return on_render_scale(reference, curve)
+
+
+ToneCurve = tuple[NDArray[np.float64], NDArray[np.float64]]
+
+
+def reference_tone_curve(reference: FloatImage, render_linear: FloatImage) -> ToneCurve:
+    """The curve of :func:`reference_on_render_scale`: fitted on every channel's pixels pooled
+    (on the grey of each when either image is grey). The two images may be reduced alike
+    first: the curve is a property of the camera, not of the image's size."""
     if reference.ndim == 2 or render_linear.ndim == 2:
-        ref = to_grey(reference)
-        return apply_tone_curve(ref, fit_tone_curve(ref, render_to_grey(render_linear)))
+        return fit_tone_curve(to_grey(reference), render_to_grey(render_linear))
     ref_c = np.moveaxis(reference[..., :3], -1, 0)
     ren_c = np.moveaxis(to_display(render_linear[..., :3]), -1, 0)
-    curve = fit_tone_curve(np.concatenate(ref_c, axis=0), np.concatenate(ren_c, axis=0))
+    return fit_tone_curve(np.concatenate(ref_c, axis=0), np.concatenate(ren_c, axis=0))
+
+
+def on_render_scale(reference: FloatImage, curve: ToneCurve) -> FloatImage:
+    """The reference through ``curve`` (from :func:`reference_tone_curve` with a colour
+    render), as display-encoded grey on the render's tone scale."""
+    if reference.ndim == 2:
+        return apply_tone_curve(reference, curve)
     light = srgb_decode(apply_tone_curve(reference[..., :3], curve))
     return to_display(to_grey(light))
 
@@ -192,9 +211,12 @@ def local_normalise(
     grey: FloatImage, scale: FloatImage | None = None, sigma_px: float = LCN_SIGMA_PX
 ) -> U8:
     """:func:`local_normalise_f` as 8-bit around 128 (for OpenCV's KLT)."""
-    return np.clip(128.0 + LCN_GAIN * local_normalise_f(grey, scale, sigma_px), 0, 255).astype(
-        np.uint8
-    )
+    return normalised_to_u8(local_normalise_f(grey, scale, sigma_px))
+
+
+def normalised_to_u8(normalised: FloatImage) -> U8:
+    """A :func:`local_normalise_f` image as :func:`local_normalise` gives it."""
+    return np.clip(128.0 + LCN_GAIN * normalised, 0, 255).astype(np.uint8)
 
 
 def smooth(img: U8) -> U8:
