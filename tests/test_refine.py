@@ -13,17 +13,10 @@ from synthetic_images import StubModel, StubRenderer
 from schemas.options import EstimateOptions
 from worker.align import refine
 from worker.align.learning import LearnedJacobian
-from worker.align.refine import (
-    LAMBDA_MIN,
-    SLOW_RATIO,
-    StageState,
-    _broyden_update,
-    _Damping,
-    _step,
-    _whiten,
-    run_lm_stage,
-)
+from worker.align.lm import LAMBDA_MIN, SLOW_RATIO, Damping, whiten
+from worker.align.refine import StageState, _broyden_update, run_lm_stage
 from worker.align.session import Session
+from worker.align.sunfit import step_with_sun
 from worker.engine.camera import PinholeCamera
 from worker.engine.posemath import increment_between
 
@@ -113,9 +106,9 @@ def test_without_iterations_left_nothing_is_rendered(linear_problem: object) -> 
 def test_whitening_multiplies_each_features_rows() -> None:
     A = np.array([[[2.0, 0.0], [0.0, 1.0]], [[0.0, 1.0], [1.0, 0.0]]])
     X = np.array([1.0, 2.0, 3.0, 4.0])
-    np.testing.assert_allclose(_whiten(A, X), [2.0, 2.0, 4.0, 3.0])
+    np.testing.assert_allclose(whiten(A, X), [2.0, 2.0, 4.0, 3.0])
     cols = np.column_stack([X, 2 * X])
-    np.testing.assert_allclose(_whiten(A, cols)[:, 1], 2 * _whiten(A, X))
+    np.testing.assert_allclose(whiten(A, cols)[:, 1], 2 * whiten(A, X))
 
 
 def test_the_sun_prior_holds_the_tilt_when_the_features_do_not_see_it() -> None:
@@ -127,10 +120,10 @@ def test_the_sun_prior_holds_the_tilt_when_the_features_do_not_see_it() -> None:
 
     J = np.hstack([J_TRUE, np.zeros((2 * K, 2))])  # the features do not move with the sun
     r = J_TRUE @ DP_TRUE
-    dp = _step(J, r, 0.0, np.ones(K), Sun())  # type: ignore[arg-type]
+    dp = step_with_sun(J, r, 0.0, np.ones(K), Sun())  # type: ignore[arg-type]
     np.testing.assert_allclose(dp[:6], DP_TRUE, atol=1e-9)
     np.testing.assert_allclose(dp[6:], 0.0, atol=1e-9)
-    np.testing.assert_allclose(_step(J_TRUE, r, 0.0, np.ones(K), None), DP_TRUE, atol=1e-9)
+    np.testing.assert_allclose(step_with_sun(J_TRUE, r, 0.0, np.ones(K), None), DP_TRUE, atol=1e-9)
 
 
 def test_broyden_makes_the_rows_predict_the_motion_they_saw() -> None:
@@ -147,7 +140,7 @@ def test_broyden_makes_the_rows_predict_the_motion_they_saw() -> None:
 
 
 def test_damping_bookkeeping() -> None:
-    damping = _Damping(1e-3)
+    damping = Damping(1e-3)
     damping.reject()
     damping.reject()
     assert damping.lam == pytest.approx(1e-1) and damping.rejected == 2
@@ -157,6 +150,6 @@ def test_damping_bookkeeping() -> None:
     assert damping.steady == 1
     damping.accept(0.01 * SLOW_RATIO**3)  # shrank: not
     assert damping.steady == 0 and damping.last_step == pytest.approx(0.01 * SLOW_RATIO**3)
-    tiny = _Damping(LAMBDA_MIN)
+    tiny = Damping(LAMBDA_MIN)
     tiny.accept(1.0)
     assert tiny.lam == LAMBDA_MIN

@@ -7,6 +7,8 @@ with Tukey's biweight, and a RANSAC over δp rejects features that no single pos
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import numpy as np
 from numpy.typing import NDArray
 
@@ -18,6 +20,10 @@ TUKEY_C = 4.685
 RANSAC_SET_SIZE = 6
 #: Floor of the robust residual scale, px: KLT cannot resolve motion below this.
 MIN_SCALE_PX = 0.05
+#: Smallest LM damping λ.
+LAMBDA_MIN = 1e-9
+#: An accepted step counts as not shrinking when it is more than this fraction of the last.
+SLOW_RATIO = 0.5
 
 
 #: Image cell (px) within which feature errors are taken as one, for the covariance.
@@ -153,3 +159,37 @@ def covariance(
     if np.trace(C_cluster) > np.trace(C):
         C = C_cluster
     return C, float(np.sqrt(sigma2))
+
+
+def rows_of(mask: NDArray[np.bool_]) -> NDArray[np.bool_]:
+    return np.repeat(mask, 2)
+
+
+def whiten(A: Array, X: Array) -> Array:
+    """Rows (u, v) of each feature, in X (2k,) or (2k, n), multiplied by its A (k, 2, 2)."""
+    k = len(A)
+    Xk = X.reshape(k, 2, -1)
+    return np.einsum("kij,kjn->kin", A, Xk).reshape(X.shape)
+
+
+@dataclass
+class Damping:
+    """λ and the counters that end an LM stage: consecutive rejected trials, and accepted steps
+    in a row that did not shrink by SLOW_RATIO."""
+
+    lam: float
+    rejected: int = 0
+    steady: int = 0
+    last_step: float = np.inf
+
+    def reject(self) -> None:
+        """A rejected trial: a smaller step next time."""
+        self.lam *= 10.0
+        self.rejected += 1
+
+    def accept(self, step: float) -> None:
+        """An accepted trial of size ``step``: a larger step next time."""
+        self.rejected = 0
+        self.lam = max(self.lam * 0.1, LAMBDA_MIN)
+        self.steady = self.steady + 1 if step > SLOW_RATIO * self.last_step else 0
+        self.last_step = step

@@ -25,14 +25,16 @@ from worker.align.learning import (
     perturbation_sizes,
 )
 from worker.align.lm import (
+    Damping,
     feature_norms,
     irls_increment,
-    lm_step,
     ransac_increment,
+    rows_of,
     weighted_cost,
+    whiten,
 )
 from worker.align.session import LinearFit, RenderedView, Session
-from worker.align.sunfit import SunTilt
+from worker.align.sunfit import SunTilt, step_with_sun
 from worker.align.tracked import Features, MatchedFeatures, TrackedFeatures
 from worker.engine.exceptions import TooFewFeaturesError
 from worker.engine.posemath import apply_increment, step_norm
@@ -55,12 +57,11 @@ BROYDEN_MIN_MOTION_PX = 0.3
 MAX_REJECTIONS = 2
 #: λ beyond which repeated rejections end the stage.
 LAMBDA_MAX = 1e4
-LAMBDA_MIN = 1e-9
-#: Accepted steps in a row, each more than SLOW_RATIO of the one before, that end the stage as
-#: 'slow': with a right Jacobian the steps shrink fast; steady ones mean it overstates how far
-#: the features move, and a Jacobian learned afresh at the current pose does better.
+#: Accepted steps in a row, each more than SLOW_RATIO (worker.align.lm) of the one before, that
+#: end the stage as 'slow': with a right Jacobian the steps shrink fast; steady ones mean it
+#: overstates how far the features move, and a Jacobian learned afresh at the current pose does
+#: better.
 SLOW_STEPS = 3
-SLOW_RATIO = 0.5
 #: RANSAC threshold over δp: at least this, px, or a fraction of the median residual.
 RANSAC_MIN_PX = 1.5
 RANSAC_REL = 0.25
@@ -78,17 +79,6 @@ class StageState:
     learned_at: RenderedView | None = None  # the view whose pose the Jacobian was learned at
     inliers: NDArray[np.bool_] | None = None  # pose-consistent features (RANSAC)
     sun_J: Array | None = None  # (2k, 2) px per radian of sun tilt (see worker.align.sunfit)
-
-
-def _rows(mask: NDArray[np.bool_]) -> NDArray[np.bool_]:
-    return np.repeat(mask, 2)
-
-
-def _whiten(A: Array, X: Array) -> Array:
-    """Rows (u, v) of each feature, in X (2k,) or (2k, n), multiplied by its A (k, 2, 2)."""
-    k = len(A)
-    Xk = X.reshape(k, 2, -1)
-    return np.einsum("kij,kjn->kin", A, Xk).reshape(X.shape)
 
 
 def _new_state(session: Session, mode: str, view: RenderedView) -> StageState:
@@ -120,14 +110,6 @@ def _weights(
     if w0.sum() < 3:
         w0 = np.ones(len(w0))
     return irls_increment(J, r, w0=w0)[1]
-
-
-def _step(J: Array, r: Array, lam: float, w: Array, sun: SunTilt | None) -> Array:
-    """The LM step over J's columns; with the sun's tilt among them, its prior joins the solve."""
-    if sun is None:
-        return lm_step(J, r, lam, w)
-    Jp, rp = sun.prior_rows()
-    return lm_step(np.vstack([J, Jp]), np.concatenate([r, rp]), lam, np.append(w, 1.0))
 
 
 def _broyden_update(
@@ -201,29 +183,6 @@ class _Trial:
     sun_motion: Array | None  # (2k,) image motion the trial's change of sun predicts
 
 
-@dataclass
-class _Damping:
-    """λ and the counters that end a stage: consecutive rejected trials, and accepted steps in
-    a row that did not shrink by SLOW_RATIO."""
-
-    lam: float
-    rejected: int = 0
-    steady: int = 0
-    last_step: float = np.inf
-
-    def reject(self) -> None:
-        """A rejected trial: a smaller step next time."""
-        self.lam *= 10.0
-        self.rejected += 1
-
-    def accept(self, step: float) -> None:
-        """An accepted trial of size ``step``: a larger step next time."""
-        self.rejected = 0
-        self.lam = max(self.lam * 0.1, LAMBDA_MIN)
-        self.steady = self.steady + 1 if step > SLOW_RATIO * self.last_step else 0
-        self.last_step = step
-
-
 def run_lm_stage(
     session: Session,
     mode: str,
@@ -249,7 +208,7 @@ def run_lm_stage(
     the session's current render then stays at the pose the step started from.
     """
     opts = session.options
-    damping = _Damping(opts.lambda_init)
+    damping = Damping(opts.lambda_init)
     st: StageState | None = state
     fit_sun = opts.fit_sun and stage == "refine" if fit_sun is None else fit_sun
     sun = SunTilt(session) if fit_sun else None
@@ -313,20 +272,20 @@ def _linear_system(session: Session, st: StageState, lam: float, sun: SunTilt | 
             f"only {int(active.sum())} features usable (need {opts.min_features})"
         )
     A = st.features.A[active]
-    J_px = st.learned.J[_rows(active)]
-    J = _whiten(A, J_px)
-    r = _whiten(A, (st.features.x_ref - st.h)[active].ravel())
+    J_px = st.learned.J[rows_of(active)]
+    J = whiten(A, J_px)
+    r = whiten(A, (st.features.x_ref - st.h)[active].ravel())
     with session.timed("solve"):
         w = _weights(session, st, J, r, active)
         if st.inliers is not None:
             active_new = st.ok & st.learned.ok & st.inliers
             if not np.array_equal(active_new, active):  # RANSAC just ran: restrict
                 keep = active_new[active]
-                active, J, r, w = active_new, J[_rows(keep)], r[_rows(keep)], w[keep]
-                A, J_px = A[keep], J_px[_rows(keep)]
+                active, J, r, w = active_new, J[rows_of(keep)], r[rows_of(keep)], w[keep]
+                A, J_px = A[keep], J_px[rows_of(keep)]
         if st.sun_J is not None:
-            J = np.hstack([J, _whiten(A, st.sun_J[_rows(active)])])
-        dp_all = _step(J, r, lam, w, sun)
+            J = np.hstack([J, whiten(A, st.sun_J[rows_of(active)])])
+        dp_all = step_with_sun(J, r, lam, w, sun)
     return _System(active, A, J_px, J, r, w, weighted_cost(r, w), dp_all)
 
 
@@ -372,8 +331,8 @@ def _trial(session: Session, st: StageState, system: _System, sun: SunTilt | Non
     with session.timed("track"):
         h_t, ok_t = st.features.measure(view, guess)
     common = ok_t[system.active]
-    r_t = _whiten(system.A, (st.features.x_ref - h_t)[system.active].ravel())
-    rows = _rows(common)
+    r_t = whiten(system.A, (st.features.x_ref - h_t)[system.active].ravel())
+    rows = rows_of(common)
     trial = _Trial(
         view,
         h_t,
@@ -397,7 +356,7 @@ def _judge(
     system: _System,
     trial: _Trial,
     step: float,
-    damping: _Damping,
+    damping: Damping,
     handover_step: float | None,
 ) -> Outcome | None:
     """Accept or reject the trial, record the iteration, update λ; the stage's outcome if a
@@ -421,7 +380,7 @@ def _judge(
     session.accept(trial.view)
     _broyden_update(session, st, system.active, trial.common, trial.h, system.dp, trial.sun_motion)
     st.h, st.ok = trial.h, st.ok & trial.ok
-    rows = _rows(trial.common)
+    rows = rows_of(trial.common)
     x = trial.h[system.active][trial.common]
     session.fit = LinearFit(system.J[rows], trial.r[rows], system.w[trial.common], x)
     session.record(stage, trial.cost, step, damping.lam, True, n_common)

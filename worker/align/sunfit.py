@@ -22,6 +22,7 @@ from dataclasses import replace
 import numpy as np
 from numpy.typing import NDArray
 
+from worker.align.lm import lm_step
 from worker.align.session import RenderedView, Session
 from worker.engine.renderer import LightingSpec
 
@@ -103,3 +104,11 @@ class SunTilt:
         Js = np.column_stack(cols)
         Js[~np.repeat(keep, 2)] = 0.0
         return Js
+
+
+def step_with_sun(J: Array, r: Array, lam: float, w: Array, sun: SunTilt | None) -> Array:
+    """The LM step over J's columns; with the sun's tilt among them, its prior joins the solve."""
+    if sun is None:
+        return lm_step(J, r, lam, w)
+    Jp, rp = sun.prior_rows()
+    return lm_step(np.vstack([J, Jp]), np.concatenate([r, rp]), lam, np.append(w, 1.0))
