@@ -118,7 +118,11 @@ class Tracker:
     def __init__(
         self, model: LoadedModel, request: EstimateRequest, should_cancel: CancelCheck | None = None
     ) -> None:
-        self.model, self.request, self.should_cancel = model, request, should_cancel
+        # The frames share one renderer and carry feature positions from frame to frame in
+        # the whole image's pixels: no refinement window (its origin would move with the target).
+        options = request.options.model_copy(update={"window": False})
+        self.model, self.should_cancel = model, should_cancel
+        self.request = request.model_copy(update={"options": options})
         self.poses: list[Pose] = []
         #: The motion into the last tracked frame (an increment, [δq, δt]): what predicted()
         #: adds to the last pose.
@@ -280,11 +284,6 @@ class Tracker:
             should_cancel=self.should_cancel,
             rng=previous.rng,
             perturbation_scales=previous.perturbation_scales,
-            # The window stays where the previous frame had it: the carried features' positions
-            # are in its pixels (it moves with the target when features are made afresh).
-            window_side=previous.window_side,
-            window_centre=previous.window_centre,
-            window_offset=previous.window_offset,
         )
 
     def _carry(self, memory: _Memory, session: Session) -> StageState:
@@ -317,9 +316,7 @@ class Tracker:
 
     @staticmethod
     def _fresh(session: Session) -> StageState:
-        """Features made afresh at the session's pose and their Jacobian learned there (the
-        window, if any, first centred on the target again)."""
-        session.centre_window()
+        """Features made afresh at the session's pose and their Jacobian learned there."""
         view = session.current_view()
         features = TrackedFeatures(session, view)
         h, ok = features.measure(view, None)
