@@ -45,6 +45,7 @@ class SequenceRun:
     def row(self, jump_at: int | None) -> dict[str, Any]:
         s = summarise(self.frames)
         tracked = [f.seconds for f in self.frames if f.status == "tracked"]
+        tracked_cost = [f.render_cost for f in self.frames if f.status == "tracked"]
         per_frame = [f.seconds for f in self.frames[1:]] or [f.seconds for f in self.frames]
         rot = [f.errors.rotation_deg for f in self.frames if f.errors]
         tr = [f.errors.translation_pct_of_range for f in self.frames if f.errors]
@@ -73,6 +74,7 @@ class SequenceRun:
             "frames_per_second": s.frames_per_second,
             "renders_per_frame": s.renders / max(s.frames, 1),
             "render_cost_per_frame": s.render_cost / max(s.frames, 1),
+            "render_cost_per_tracked_frame": float(np.mean(tracked_cost)) if tracked_cost else None,
             "rot_median_deg": float(np.median(rot)) if rot else None,
             "rot_max_deg": float(np.max(rot)) if rot else None,
             "trans_median_pct": float(np.median(tr)) if tr else None,
