@@ -182,7 +182,7 @@ class EstimateOptions(BaseModel):
         ge=1,
         le=1024,
         description="Samples per pixel of the coarse stage's renders; null: spp. Fewer make the "
-        "coarse stage cheaper (4 cut the render cost at 512-1920 px by 2-3 full renders) but "
+        "coarse stage cheaper (4 cut the render cost by about 2 full renders at 512-640 px) but "
         "noisier: at 192×144 px, and for a terrain half out of frame, 4 spp left the estimate "
         "0.4-0.6° off.",
     )
