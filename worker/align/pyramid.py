@@ -12,7 +12,7 @@ smallest whose short side and target keep a floor: PnP on descriptor matches nee
 
 Once the coarse stage has placed the target, the refinement needs only the part of the image
 the target covers: its levels get a *window*, a square around the target's lit part with a
-margin (:func:`window_side`), rendered and processed instead of the whole image.
+margin (:func:`ladder_side`), rendered and processed instead of the whole image.
 """
 
 from __future__ import annotations
@@ -105,8 +105,8 @@ def plan_windows(
         side = round(fraction * short)
         for s in scales:
             cam = camera if s == 1.0 else camera.scaled(s)
-            w, h = math.ceil(side * s) + 2, math.ceil(side * s) + 2
-            sizes[(side, s)] = (min(cam.width, w), min(cam.height, h))
+            n = math.ceil(side * s) + 2
+            sizes[(side, s)] = (min(cam.width, n), min(cam.height, n))
     return sizes
 
 

@@ -4,7 +4,8 @@ The scene is built once per (model, camera, scales): the model stays in its own 
 Mitsuba's world frame, and a pose b = R a + t moves the *camera* (and the sun with it) through
 ``mi.traverse`` updates — no scene reload, no recompilation. One sensor is built per resolution
 scale (the full image and the cheaper perturbation renders), and optionally one per *window*
-scale: a film of fixed size that sees a movable sub-rectangle of the scaled image (a target
+(ladder side and scale): a film of fixed size that sees a movable sub-rectangle of the scaled
+image (a target
 covering a third of the frame should not pay for all of it). A window moves through its
 sensor's principal point offset, which the render kernel reads as a parameter: moving it
 recompiles nothing (changing a film's crop offset would).
