@@ -15,7 +15,7 @@ from numpy.typing import NDArray
 from schemas.estimate import StopReason
 from worker.align.features import match_features
 from worker.align.pnp import PnPResult, solve_pnp
-from worker.align.session import RenderedView, Session
+from worker.align.session import LIT_FRACTION, RenderedView, Session
 from worker.engine.images import FloatImage
 from worker.engine.photometry import alignment_score, content_mask, normalise_pair
 from worker.engine.posemath import axis_angle_to_matrix, increment_between, step_norm
@@ -62,13 +62,13 @@ def run_moment_alignment(session: Session) -> bool:
     """
     view = session.current_view()
     ref = session.ref_grey
-    if cut_by_frame(view.grey > 0.05 * float(view.grey.max())):
+    if cut_by_frame(view.grey > LIT_FRACTION * float(view.grey.max())):
         return False  # area and centroid of a silhouette the frame cuts say nothing of the pose
     sky = float(np.median(ref))
     noise = 1.4826 * float(np.median(np.abs(ref - sky)))
     level_ref = sky + max(6.0 * noise, 0.05 * (float(np.percentile(ref, 99.9)) - sky))
     area_ref, c_ref = silhouette_moments(ref, level_ref)
-    area_ren, c_ren = silhouette_moments(view.grey, 0.05 * float(view.grey.max()))
+    area_ren, c_ren = silhouette_moments(view.grey, LIT_FRACTION * float(view.grey.max()))
     if area_ref < MIN_SILHOUETTE_PX or area_ren < MIN_SILHOUETTE_PX:
         return False
     cam = session.camera
