@@ -36,6 +36,8 @@ REDIS_DOWN_RETRY_AFTER_S = 5
 #: FastAPI's form_limits sets the cap but not the answer), so we know it by its text and answer
 #: 413 (tests/test_framework_limits.py fails if the text or the signal changes).
 STARLETTE_PART_TOO_LARGE = "Part exceeded maximum size"
+#: The same for a field of a urlencoded form (FormParser), in its own words.
+STARLETTE_FIELD_TOO_LARGE = "Field exceeded maximum size"
 #: Starlette's message for a form with more file parts than its parser takes (1,000), answered
 #: 400 the same way: a request with that many images is too large for every route we have.
 STARLETTE_TOO_MANY_FILES = "Too many files"
@@ -118,7 +120,9 @@ async def _http_error(request: Request, exc: Exception) -> ProblemResponse:
         return problem_response(
             request, exc.status_code, exc.text, code=exc.code, errors=exc.errors, headers=headers
         )
-    if exc.status_code == 400 and str(exc.detail).startswith(STARLETTE_PART_TOO_LARGE):
+    if exc.status_code == 400 and str(exc.detail).startswith(
+        (STARLETTE_PART_TOO_LARGE, STARLETTE_FIELD_TOO_LARGE)
+    ):
         msg = (
             "a form field is larger than 1 MiB; send the request JSON as a file part "
             "(curl -F request=@request.json)"

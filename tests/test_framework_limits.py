@@ -27,7 +27,7 @@ from starlette.exceptions import HTTPException
 from starlette.formparsers import MultiPartException
 
 from schemas.problem import PROBLEM_MEDIA_TYPE
-from service.errors import STARLETTE_PART_TOO_LARGE
+from service.errors import STARLETTE_FIELD_TOO_LARGE, STARLETTE_PART_TOO_LARGE
 
 MAX_BODY_BYTES = 1000
 MAX_PART_BYTES = 100
@@ -100,3 +100,14 @@ def test_a_form_part_over_max_part_size_is_a_400_known_by_its_text(
     assert isinstance(error.__context__, MultiPartException)
     assert vars(error.__context__) == {"message": error.detail}  # nothing but the text
     assert str(error.detail).startswith(STARLETTE_PART_TOO_LARGE)  # what service/errors.py matches
+
+
+def test_a_urlencoded_field_over_max_part_size_is_a_400_in_other_words(
+    framework_limited: tuple[TestClient, list[HTTPException]],
+) -> None:
+    client, seen = framework_limited
+    response = client.post("/upload", data={"request": "y" * (2 * MAX_PART_BYTES)})
+    assert response.status_code == 400
+    (error,) = seen
+    assert isinstance(error.__context__, MultiPartException)
+    assert str(error.detail).startswith(STARLETTE_FIELD_TOO_LARGE)  # what service/errors.py matches

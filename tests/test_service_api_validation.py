@@ -242,6 +242,16 @@ def test_oversized_image_is_413(client: TestClient, r: redis.Redis, monkeypatch:
     assert queued(r) == 0
 
 
+def test_urlencoded_field_over_1_mib_is_413(client: TestClient, r: redis.Redis) -> None:
+    """A urlencoded form's field over Starlette's 1 MiB cap is told apart by its own text
+    ("Field exceeded", not the multipart parser's "Part exceeded"): 413, not a bare 400."""
+    response = client.post("/v1/estimates", data={"request": "x" * 1_100_000})
+    assert response.status_code == 413, response.text
+    assert response.json()["code"] == "too_large"
+    assert "1 MiB" in response.json()["detail"]
+    assert queued(r) == 0
+
+
 def test_oversized_body_is_413_before_parsing(
     client: TestClient, r: redis.Redis, monkeypatch: Any
 ) -> None:
