@@ -207,6 +207,13 @@ def test_bench_skips_an_absent_shared_model(tmp_path: Path) -> None:
     assert "not found" in out.stderr
 
 
+def test_bench_sequences_look_for_models_in_models_dir(tmp_path: Path) -> None:
+    args = ("bench", "--sequences", "approach", "--models", "iss", "--models-dir", str(tmp_path))
+    out = proxpose(*args, "--output", str(tmp_path), env={"PROXPOSE_REQUIRE_SHARED": "1"})
+    assert out.returncode == 2
+    assert "not found" in out.stderr and str(tmp_path) in out.stderr
+
+
 @pytest.fixture(scope="module")
 def quick_run(tmp_path_factory: pytest.TempPathFactory) -> Path:
     """``proxpose bench --quick`` once for the tests below; its output directory."""

@@ -280,7 +280,7 @@ def run_sequence_suite(args: argparse.Namespace) -> int:
     require = os.environ.get("PROXPOSE_REQUIRE_SHARED") == "1"
     try:
         models, skipped = resolve_models(
-            args.models or ["iss", "aura"], SHARED_MODELS_DIR, args.output / "models", require
+            args.models or ["iss", "aura"], args.models_dir, args.output / "models", require
         )
     except BenchSetupError as exc:
         print(f"error: {exc}", file=sys.stderr)
