@@ -66,3 +66,28 @@ def test_a_chained_frame_whose_estimate_fails_is_lost_and_the_next_goes_on(
     assert np.allclose(lost.pose.quaternion, seq.request.initial_pose.quaternion, atol=1e-12)
     assert lost.errors is not None and lost.errors.rotation_deg > 0.5  # the start's offset
     assert after.status == "reinitialised" and after.converged
+
+
+def test_a_flyaround_keeps_the_target_centred_while_it_turns() -> None:
+    """The camera circles the target, pointed at it: the target's centre stays put in the
+    camera's frame (it once turned about the camera, panning the target out of the frame),
+    and the attitude turns by the orbit (and the spin) each frame."""
+    from types import SimpleNamespace
+
+    import numpy as np
+
+    from worker.bench.sequences import MOTIONS, truths
+    from worker.engine.camera import PinholeCamera
+    from worker.engine.metrics import rotation_error_deg
+
+    model = SimpleNamespace(centre=np.array([0.3, -0.2, 0.1]), radius=2.0)
+    camera = PinholeCamera(512, 512, 600.0, 600.0, 255.5, 255.5)
+    motion = MOTIONS["flyaround"]
+    poses = truths(model, camera, motion, 24, np.random.default_rng(1))  # type: ignore[arg-type]
+    centres = np.array([R @ model.centre + t for R, t in poses])
+    assert np.allclose(centres, centres[0], atol=1e-9)
+    turns = [rotation_error_deg(a[0], b[0]) for a, b in zip(poses, poses[1:], strict=False)]
+    assert np.allclose(turns, turns[0], atol=1e-6)
+    assert (
+        motion.orbit_deg - motion.spin_deg - 1e-6 <= turns[0] <= motion.orbit_deg + motion.spin_deg
+    )

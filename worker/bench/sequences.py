@@ -75,8 +75,11 @@ def truths(
         R = R @ step
         if motion.jump_at is not None and k + 1 == motion.jump_at:
             R = R @ axis_angle_to_matrix(rng.normal(size=3), np.radians(motion.jump_deg))
-        if motion.orbit_deg:  # the camera circles the target: the scene turns about the camera
-            R, centre = orbit @ R, orbit @ centre
+        if motion.orbit_deg:
+            # The camera circles the target, pointed at it: in the camera's frame the target
+            # turns about its own centre, which stays where it is in the image (turning the
+            # scene about the camera instead panned the target out of the frame in ~15 frames).
+            R = orbit @ R
     return out
 
 
