@@ -64,10 +64,11 @@ def relative_blur(reference_linear: FloatImage, render_linear: FloatImage) -> fl
         return 0.0
     W = profile_grid()[2]
     misfits, keep = [], np.ones(len(pts), dtype=bool)
+    s = None  # each σ's alignment starts from the last one's (the shifts change little)
     for sigma in BLUR_GRID_PX:
         img = ren_enc if sigma == 0 else srgb_encode(cv2.GaussianBlur(ren, (0, 0), sigma))
         img = img.astype(np.float32)
-        s, ok = normal_shift(img, ref_enc, pts, n)
+        s, ok = normal_shift(img, ref_enc, pts, n, s)
         keep &= ok
         misfits.append(_misfit(profiles(ref_enc, pts, n, s), profiles(img, pts, n), W))
     per = np.array(misfits)[:, keep]

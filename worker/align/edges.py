@@ -124,13 +124,17 @@ def normal_shift(
     H = np.sum(W * dT * dT, axis=1)
     Tc = T - np.sum(W * T, axis=1, keepdims=True) / W.sum()
     s = np.zeros(k) if s0 is None else s0.astype(np.float64).copy()
+    # Each point iterates until its own step is below SHIFT_TOL_PX (the points still moving
+    # are the only ones sampled again: most settle in two or three steps, a few take all).
+    moving = np.arange(k)
     for _ in range(SHIFT_ITERATIONS):
-        B = profiles(target, pts, normals, s)
+        B = profiles(target, pts[moving], normals[moving], s[moving])
         B = B - np.sum(W * B, axis=1, keepdims=True) / W.sum()  # offsets cancel
-        step = -np.sum(W * dT * (B - Tc), axis=1) / np.maximum(H, 1e-12)
+        step = -np.sum(W * dT[moving] * (B - Tc[moving]), axis=1) / np.maximum(H[moving], 1e-12)
         step = np.clip(step, -1.0, 1.0)
-        s += step
-        if np.abs(step).max() < SHIFT_TOL_PX:
+        s[moving] += step
+        moving = moving[np.abs(step) >= SHIFT_TOL_PX]
+        if len(moving) == 0:
             break
     B = profiles(target, pts, normals, s)
     ncc = _weighted_ncc(T, B, W)
