@@ -176,14 +176,21 @@ class EstimateOptions(BaseModel):
         default=True, description="Pose-consistent outlier rejection (RANSAC and IRLS weights)."
     )
     lambda_init: float = Field(default=1e-3, gt=0.0, le=1e6, description="Initial LM damping λ.")
-    spp: int = Field(default=16, ge=1, le=1024, description="Samples per pixel, main renders.")
+    spp: int = Field(
+        default=16,
+        ge=1,
+        le=1024,
+        description="Samples per pixel of the main renders at full resolution. A pyramid level "
+        "below it renders spp·level² (as many samples per unit of image area; at least "
+        "perturbation_spp): the reference is area-averaged to that level, and so is the noise.",
+    )
     coarse_spp: int | None = Field(
         default=None,
         ge=1,
         le=1024,
-        description="Samples per pixel of the coarse stage's renders; null: spp. Fewer make the "
-        "coarse stage cheaper (4 cut the render cost by about 2 full renders at 512-640 px) but "
-        "noisier: at 192×144 px, and for a terrain half out of frame, 4 spp left the estimate "
+        description="Samples per pixel of the coarse stage's renders; null: as any main render "
+        "(spp at full resolution, spp·level² below it). At full resolution fewer are cheaper "
+        "but noisier: 4 at 192×144 px, and for a terrain half out of frame, left the estimate "
         "0.4-0.6° off.",
     )
     perturbation_spp: int = Field(

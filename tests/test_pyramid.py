@@ -14,6 +14,7 @@ from worker.align.pyramid import (
     FIRST_PASS_SIDE_PX,
     FIRST_PASS_TARGET_PX,
     level_for,
+    level_spp,
     perturbation_scale,
     plan_levels,
 )
@@ -80,8 +81,27 @@ def test_a_session_at_a_reduced_level_scales_the_reference_with_the_camera() -> 
     assert session.ref_grey.mean() == pytest.approx(session.reference_grey.mean(), rel=1e-3)
     view = session.current_view()
     assert view.level == 0.5 and session.renderer.stats.renders == 1
+    assert view.spp == 4  # 16 at full resolution: as many samples per unit of image area
     session.set_level(1.0)
-    assert session.current_view().level == 1.0 and session.renderer.stats.renders == 2
+    full_view = session.current_view()
+    assert full_view.level == 1.0 and full_view.spp == 16
+    assert session.renderer.stats.renders == 2
+
+
+@pytest.mark.parametrize(
+    ("spp", "level", "floor", "expected"),
+    [
+        (16, 1.0, 4, 16),
+        (16, 0.5, 4, 4),  # spp·level²
+        (64, 0.5, 4, 16),
+        (16, 0.25, 4, 4),  # 1 by area, but never below the perturbation renders' spp
+        (2, 0.25, 4, 2),  # nor above the full-resolution spp
+    ],
+)
+def test_a_reduced_level_renders_as_many_samples_per_unit_area(
+    spp: int, level: float, floor: int, expected: int
+) -> None:
+    assert level_spp(spp, level, floor) == expected
 
 
 def test_a_level_without_a_sensor_is_refused() -> None:

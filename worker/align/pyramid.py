@@ -59,6 +59,14 @@ class LevelPlan:
         return tuple(sorted(levels, reverse=True))
 
 
+def level_spp(spp: int, level: float, floor: int) -> int:
+    """Samples per pixel of a main render at ``level``: as many per unit of image area as
+    ``spp`` gives at full resolution (spp·level²), but at least ``floor`` (or spp, if
+    smaller). The reference is area-averaged onto a level's camera, so such a render has the
+    noise of a full-resolution one averaged the same way, at level² of its cost."""
+    return max(min(spp, floor), round(spp * level * level))
+
+
 def perturbation_scale(requested: float, level: float, camera: PinholeCamera) -> float:
     """The perturbation renders' scale at ``level``: ``requested`` of the level, but never
     below MIN_PERTURBATION_SIDE_PX on the short side, nor above the level itself."""
