@@ -180,18 +180,17 @@ class EstimateOptions(BaseModel):
         default=16,
         ge=1,
         le=1024,
-        description="Samples per pixel of the main renders at full resolution. A pyramid level "
-        "below it renders spp·level² (as many samples per unit of image area; at least "
-        "perturbation_spp): the reference is area-averaged to that level, and so is the noise.",
+        description="Samples per pixel of the main renders (the coarse stage's: see coarse_spp).",
     )
     coarse_spp: int | None = Field(
         default=None,
         ge=1,
         le=1024,
-        description="Samples per pixel of the coarse stage's renders; null: as any main render "
-        "(spp at full resolution, spp·level² below it). At full resolution fewer are cheaper "
-        "but noisier: 4 at 192×144 px, and for a terrain half out of frame, left the estimate "
-        "0.4-0.6° off.",
+        description="Samples per pixel of the coarse stage's renders; null: spp at full "
+        "resolution, spp·level² at a reduced level (as many samples per unit of image area; at "
+        "least perturbation_spp: the reference is area-averaged to that level, and so is the "
+        "noise). At full resolution fewer are cheaper but noisier: 4 at 192×144 px, and for a "
+        "terrain half out of frame, left the estimate 0.4-0.6° off.",
     )
     perturbation_spp: int = Field(
         default=4, ge=1, le=1024, description="Samples per pixel, perturbation renders."

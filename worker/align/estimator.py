@@ -25,7 +25,7 @@ from worker.align.coarse import (
 )
 from worker.align.learning import apparent_radius_px
 from worker.align.lm import covariance
-from worker.align.pyramid import LevelPlan, plan_levels
+from worker.align.pyramid import LevelPlan, level_spp, plan_levels
 from worker.align.refine import Outcome, run_lm_stage
 from worker.align.renderers import get_renderer, lighting_spec, texture_level
 from worker.align.session import CancelCheck, ProgressCallback, RenderedView, Session
@@ -142,7 +142,12 @@ def _run_pipeline(session: Session, renderer_for: RendererFor, plan: LevelPlan) 
     if opts.refine_features != "none":
         session.set_level(plan.coarse)
     if opts.coarse == "pnp":
-        session.stage_spp = opts.coarse_spp
+        # the coarse stage's level has as many samples per unit of image area as spp gives at
+        # full resolution (see level_spp; only the coarse stage: a refinement pass at a reduced
+        # level at spp·level² left a textured model's estimates further off)
+        session.stage_spp = opts.coarse_spp or level_spp(
+            opts.spp, session.level, opts.perturbation_spp
+        )
     check_lit(session.current_view(), session.renderer.lighting)
     if opts.coarse == "pnp":
         run_moment_alignment(session)

@@ -20,7 +20,7 @@ from numpy.typing import NDArray
 from schemas.estimate import IterationRecord, Stage
 from schemas.options import EstimateOptions
 from worker.align.features import Described, describe
-from worker.align.pyramid import ladder_side, level_spp
+from worker.align.pyramid import ladder_side
 from worker.engine.camera import PinholeCamera
 from worker.engine.exceptions import EstimationCancelled
 from worker.engine.images import FloatImage
@@ -118,8 +118,7 @@ class Session:
     #: renderer has a sensor for every one of them).
     level: float = 1.0
     perturbation_scales: dict[float, float] = field(default_factory=dict)
-    #: Samples per pixel of the main renders of the stage in progress (None: options.spp at
-    #: full resolution, scaled to the level below it, see main_spp).
+    #: Samples per pixel of the main renders of the stage in progress (None: options.spp).
     stage_spp: int | None = None
     #: The window's ladder side and centre (full-resolution px): the levels the renderer has
     #: that window for then work on it instead of the whole image (worker.align.pyramid), and
@@ -296,10 +295,8 @@ class Session:
 
     @property
     def main_spp(self) -> int:
-        """Samples per pixel of the main renders now: the stage's, else options.spp scaled to
-        the working level (worker.align.pyramid.level_spp)."""
-        opts = self.options
-        return self.stage_spp or level_spp(opts.spp, self.level, opts.perturbation_spp)
+        """Samples per pixel of the main renders now."""
+        return self.stage_spp or self.options.spp
 
     def current_view(self) -> RenderedView:
         """The render at the current pose, level, window and spp (rendered once and kept)."""
