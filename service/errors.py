@@ -120,23 +120,29 @@ async def _http_error(request: Request, exc: Exception) -> ProblemResponse:
         return problem_response(
             request, exc.status_code, exc.text, code=exc.code, errors=exc.errors, headers=headers
         )
-    if exc.status_code == 400 and str(exc.detail).startswith(
-        (STARLETTE_PART_TOO_LARGE, STARLETTE_FIELD_TOO_LARGE)
-    ):
-        msg = (
-            "a form field is larger than 1 MiB; send the request JSON as a file part "
-            "(curl -F request=@request.json)"
-        )
-        errors = [{"loc": ["body"], "msg": msg, "type": "too_large"}]
-        return problem_response(request, 413, msg, code="too_large", errors=errors)
-    if exc.status_code == 400 and str(exc.detail).startswith(STARLETTE_TOO_MANY_FILES):
-        msg = f"too many file parts in one request: {exc.detail}"
+    if (msg := _form_too_large(exc)) is not None:
         errors = [{"loc": ["body"], "msg": msg, "type": "too_large"}]
         return problem_response(request, 413, msg, code="too_large", errors=errors)
     if isinstance(exc.detail, list):  # FastAPI's field-error shape
         return problem_response(request, exc.status_code, errors=exc.detail, headers=headers)
     detail = exc.detail if isinstance(exc.detail, str) else None
     return problem_response(request, exc.status_code, detail, headers=headers)
+
+
+def _form_too_large(exc: StarletteHTTPException) -> str | None:
+    """What Starlette's 400 for a form over its parser's limits means, in our words (None:
+    another 400); known by the parser's text (see STARLETTE_PART_TOO_LARGE)."""
+    detail = str(exc.detail)
+    if exc.status_code != 400:
+        return None
+    if detail.startswith((STARLETTE_PART_TOO_LARGE, STARLETTE_FIELD_TOO_LARGE)):
+        return (
+            "a form field is larger than 1 MiB; send the request JSON as a file part "
+            "(curl -F request=@request.json)"
+        )
+    if detail.startswith(STARLETTE_TOO_MANY_FILES):
+        return f"too many file parts in one request: {detail}"
+    return None
 
 
 async def _redis_down(request: Request, exc: Exception) -> ProblemResponse:

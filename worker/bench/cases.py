@@ -229,11 +229,11 @@ def run_case(task: CaseTask, on_record: RecordCallback | None = None) -> CaseOut
     model = load_model(task.model_path)
     case, est_seed = build_case(task, model)
     reference = case.reference.astype(np.float32) / 255.0  # as decode_image reads an 8-bit PNG
-    warmups = [
-        warm_up(model, task.model_path, reference, case, spec)
-        for spec in task.methods
-        if (task.model_path, spec.label, task.size) not in _warmed
-    ]
+    warmups = []
+    for spec in task.methods:
+        if (key := (task.model_path, spec.label, task.size)) not in _warmed:
+            warmups.append(warm_up(model, task.model_path, reference, case, spec))
+            _warmed.add(key)
     render_s = full_render_seconds(model, case.request)
     records = []
     for start in task.starts:
@@ -273,8 +273,6 @@ def warm_up(
         estimate(model, reference, request)
     except ProxposeError:
         pass  # the warm-up only has to build the renderers
-    size = f"{reference.shape[1]}x{reference.shape[0]}"
-    _warmed.add((model_path, spec.label, size))
     return {"model_path": model_path, "method": spec.label, "seconds": _elapsed(start)}
 
 

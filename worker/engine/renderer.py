@@ -5,10 +5,9 @@ Mitsuba's world frame, and a pose b = R a + t moves the *camera* (and the sun wi
 ``mi.traverse`` updates — no scene reload, no recompilation. One sensor is built per resolution
 scale (the full image and the cheaper perturbation renders), and optionally one per *window*
 (ladder side and scale): a film of fixed size that sees a movable sub-rectangle of the scaled
-image (a target
-covering a third of the frame should not pay for all of it). A window moves through its
-sensor's principal point offset, which the render kernel reads as a parameter: moving it
-recompiles nothing (changing a film's crop offset would).
+image (a target covering a third of the frame should not pay for all of it). A window moves
+through its sensor's principal point offset, which the render kernel reads as a parameter:
+moving it recompiles nothing (changing a film's crop offset would).
 """
 
 from __future__ import annotations
@@ -269,13 +268,11 @@ class Renderer:
         """Linear RGB render (H, W, 3) float32 at pose (R, t), on the scaled camera's grid, or
         of ``window`` of it."""
         start = time.perf_counter()
+        sensor = self._sensor_index[(scale, 0 if window is None else window.side)]
         if window is None:
-            plan, sensor = self.plans[scale], self._sensor_index[(scale, 0)]
+            plan = self.plans[scale]
         else:
-            plan, sensor = (
-                self._move_window(scale, window),
-                self._sensor_index[(scale, window.side)],
-            )
+            plan = self._move_window(scale, window, sensor)
         self.set_pose(R, t, sensor)
         try:
             img = self._render_fn(self.scene, sensor, spp or self.spp, seed)
@@ -287,16 +284,15 @@ class Renderer:
         self.stats.by_scale[scale] = self.stats.by_scale.get(scale, 0) + 1
         return out
 
-    def _move_window(self, scale: float, window: Window) -> RenderPlan:
-        """Point the sensor of ``window`` at its origin (the principal point offset; the
-        caller's set_pose applies the update) and return its plan there."""
+    def _move_window(self, scale: float, window: Window, sensor: int) -> RenderPlan:
+        """Point ``sensor``, the sensor of ``window``, at its origin (the principal point
+        offset; the caller's set_pose applies the update) and return its plan there."""
         plan = plan_render(self.window_camera(scale, window))
         key = (window.side, scale)
         if self._origins[key] != window.origin:
-            i = self._sensor_index[(scale, window.side)]
             px, py = plan.principal_point_offset
-            self.params[f"sensor{i}.principal_point_offset_x"] = -px
-            self.params[f"sensor{i}.principal_point_offset_y"] = -py
+            self.params[f"sensor{sensor}.principal_point_offset_x"] = -px
+            self.params[f"sensor{sensor}.principal_point_offset_y"] = -py
             self._origins[key] = window.origin
         return plan
 
