@@ -28,7 +28,11 @@ def descendants(pid: int) -> list[int]:
     """Child processes of ``pid``, recursively (Linux /proc)."""
     found = []
     for task in Path(f"/proc/{pid}/task").glob("*"):
-        for child in (task / "children").read_text().split():
+        try:
+            children = (task / "children").read_text().split()
+        except FileNotFoundError:
+            continue  # the thread ended after the listing (its children went to another one)
+        for child in children:
             found += [int(child), *descendants(int(child))]
     return found
 
