@@ -5,7 +5,7 @@ from __future__ import annotations
 from datetime import datetime
 from typing import Any, Literal
 
-from pydantic import BaseModel, Field
+from pydantic import BaseModel, ConfigDict, Field
 
 from schemas.estimate import EstimateRequest, EstimateResult, Stage, StopReason
 from schemas.models import MODEL_ID_PATTERN
@@ -17,8 +17,18 @@ JobStatus = Literal["queued", "running", "succeeded", "failed", "cancelled"]
 TERMINAL_STATUSES: frozenset[str] = frozenset({"succeeded", "failed", "cancelled"})
 
 
+#: A submission's ``request`` part, the documents' example (an estimate's or a track's).
+CREATE_EXAMPLE: dict[str, Any] = {
+    "model_id": "demo-sat",
+    "camera": {"width": 512, "height": 512, "fx": 560, "fy": 560, "cx": 255.5, "cy": 255.5},
+    "initial_pose": {"t": [0.3, -0.2, 14.0], "quaternion": [0.5816, 0.6734, 0.4081, 0.2041]},
+}
+
+
 class EstimateCreate(EstimateRequest):
     """The ``request`` part of ``POST /v1/estimates``: the CLI's REQUEST.json plus the model."""
+
+    model_config = ConfigDict(json_schema_extra={"examples": [CREATE_EXAMPLE]})
 
     model_id: str = Field(
         pattern=MODEL_ID_PATTERN,

@@ -4,9 +4,9 @@ from __future__ import annotations
 
 from typing import Any
 
-from pydantic import BaseModel, Field
+from pydantic import BaseModel, ConfigDict, Field
 
-from schemas.jobs import JobSummary
+from schemas.jobs import CREATE_EXAMPLE, JobSummary
 from schemas.models import MODEL_ID_PATTERN
 from schemas.track import TrackFrame, TrackRequest, TrackResult
 
@@ -17,6 +17,8 @@ TRACK_KIND = "track"
 class TrackCreate(TrackRequest):
     """The ``request`` part of ``POST /v1/tracks``: the CLI's REQUEST.json of ``proxpose
     track`` plus the model."""
+
+    model_config = ConfigDict(json_schema_extra={"examples": [CREATE_EXAMPLE]})
 
     model_id: str = Field(
         pattern=MODEL_ID_PATTERN,

@@ -5,6 +5,7 @@ the caller's job, and serving an artifact with its ETag."""
 from __future__ import annotations
 
 import hashlib
+import json
 import re
 from collections.abc import Callable, Sequence
 from typing import Annotated, TypeVar
@@ -13,6 +14,7 @@ from fastapi import Header, Request, Response, UploadFile
 from pydantic import BaseModel, ValidationError
 
 from schemas.camera import Camera
+from schemas.jobs import CREATE_EXAMPLE
 from schemas.names import BUILTIN_MODEL_IDS
 from schemas.settings import Settings
 from service.errors import ApiError, echo, field_error, not_found, validation_failed
@@ -26,11 +28,7 @@ IdempotencyKey = Annotated[
 ]
 
 #: The example of a submission's `request` part in the OpenAPI document (estimates and tracks).
-REQUEST_EXAMPLE = (
-    '{"model_id": "demo-sat", "camera": {"width": 512, "height": 512, "fx": 560, "fy": 560, '
-    '"cx": 255.5, "cy": 255.5}, "initial_pose": {"t": [0.3, -0.2, 14.0], '
-    '"quaternion": [0.57, 0.66, 0.40, 0.20]}}'
-)
+REQUEST_EXAMPLE = json.dumps(CREATE_EXAMPLE)
 #: Retry-After of a submission refused because the key's cap of active jobs is reached, s.
 ACTIVE_CAP_RETRY_AFTER_S = 15
 #: Cache-Control of an artifact: its URL names one job's output, which never changes.

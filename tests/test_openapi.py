@@ -22,8 +22,10 @@ from service_api_helpers import (
 )
 
 from schemas.camera import Camera
+from schemas.jobs import EstimateCreate
 from schemas.lighting import Lighting
 from schemas.options import EstimateOptions
+from schemas.track_jobs import TrackCreate
 from service.main import create_app
 
 METHODS = {"get", "post", "put", "patch", "delete"}
@@ -119,7 +121,13 @@ def test_the_estimate_body_describes_the_request_part(document: dict[str, Any]) 
     assert create["properties"]["model_id"]["examples"] == ["demo-sat"]
     assert components["Camera"]["properties"]["fx"].get("description")
     # every part of the request documents itself with an example that validates
-    models = {"Camera": Camera, "Lighting": Lighting, "EstimateOptions": EstimateOptions}
+    models = {
+        "Camera": Camera,
+        "Lighting": Lighting,
+        "EstimateOptions": EstimateOptions,
+        "EstimateCreate": EstimateCreate,
+        "TrackCreate": TrackCreate,
+    }
     for name, model in models.items():
         assert components[name]["examples"], name
         for example in components[name]["examples"]:
