@@ -139,7 +139,8 @@ class Renderer:
         except Exception as exc:
             raise RenderError(f"cannot build the Mitsuba scene: {exc}") from exc
         self.params = mi.traverse(self.scene)
-        self._render_fn = _frozen_render() if use_frozen(mi.variant()) else _plain_render
+        frozen = use_frozen(mi.variant())
+        self._render_fn = _frozen_render(len(self._sensors)) if frozen else _plain_render
         self._sensor_index = {key: i for i, (key, _) in enumerate(self._sensors)}
         self.set_lighting(lighting)
 
@@ -334,6 +335,10 @@ class Renderer:
         return float(self.raycast(R, t, uv)[1].mean())
 
 
+#: Frozen-render recordings per sensor before Dr.Jit warns (per spp; again after others' first).
+RECORDINGS_PER_SENSOR = 6
+
+
 def use_frozen(variant: str) -> bool:
     """Whether renders replay a recorded kernel (JIT variants, unless PROXPOSE_FROZEN=0)."""
     return not variant.startswith("scalar") and os.environ.get("PROXPOSE_FROZEN", "1") != "0"
@@ -345,7 +350,7 @@ def _plain_render(scene: object, sensor: int, spp: int, seed: int) -> object:
     return mi.render(scene, sensor=sensor, spp=spp, seed=seed)
 
 
-def _frozen_render() -> Callable[[object, int, int, int], object]:
+def _frozen_render(sensors: int = 1) -> Callable[[object, int, int, int], object]:
     """``mi.render`` under ``dr.freeze``: the first calls per (sensor, spp) record the kernel
     launches, later ones replay them with the scene's current parameters (pose, lights) and
     skip tracing. Tracing costs little for one mesh but grows with every part and texture of
@@ -354,7 +359,7 @@ def _frozen_render() -> Callable[[object, int, int, int], object]:
     import drjit as dr
     import mitsuba as mi
 
-    @dr.freeze
+    @dr.freeze(warn_after=RECORDINGS_PER_SENSOR * sensors)
     def render(scene: object, sensor: int, spp: int, seed: object) -> object:
         return mi.render(scene, sensor=sensor, spp=spp, seed=seed)
 
