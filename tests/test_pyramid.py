@@ -40,13 +40,13 @@ def test_a_reduced_level_keeps_the_image_and_the_target_large_enough(
 ) -> None:
     camera = PinholeCamera(width, height, 500.0, 500.0, width / 2, height / 2)
     assert level_for(camera, target_px, FIRST_PASS_SIDE_PX, FIRST_PASS_TARGET_PX) == level
-    coarse = level_for(camera, target_px, COARSE_SIDE_PX, COARSE_TARGET_PX)
-    assert coarse == min(1.0, 2 * level)  # the coarse stage's floors are twice as high
+    # the coarse stage works at the first pass's level (at full size when PnP fails there)
+    assert level_for(camera, target_px, COARSE_SIDE_PX, COARSE_TARGET_PX) == level
 
 
 def test_the_plan_has_a_sensor_for_every_level_and_perturbation_scale() -> None:
     plan = plan_levels(SPEED_CAMERA, 700.0, 0.5, pyramid=True)
-    assert (plan.coarse, plan.first_pass) == (0.5, 0.25)
+    assert (plan.coarse, plan.first_pass) == (0.25, 0.25)
     # perturbations: half the level, but never below 256 px on the short side nor above it
     assert plan.perturbation == {0.25: 0.213, 1.0: 0.5}
     assert plan.scales == (1.0, 0.5, 0.25, 0.213)

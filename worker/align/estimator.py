@@ -142,21 +142,19 @@ def _run_pipeline(session: Session, renderer_for: RendererFor, plan: LevelPlan) 
     if opts.refine_features != "none":
         session.set_level(plan.coarse)
     if opts.coarse == "pnp":
-        # the coarse stage's level has as many samples per unit of image area as spp gives at
-        # full resolution (see level_spp; only the coarse stage: a refinement pass at a reduced
-        # level at spp·level² left a textured model's estimates further off)
-        session.stage_spp = opts.coarse_spp or level_spp(
-            opts.spp, session.level, opts.perturbation_spp
-        )
+        _coarse_spp(session)
     check_lit(session.current_view(), session.renderer.lighting)
     if opts.coarse == "pnp":
         run_moment_alignment(session)
         alone = opts.refine_features == "none"
-        coarse_ok, pnp_reason = run_pnp_stage(
-            session,
-            opts.max_iterations if alone else COARSE_MAX_ITERATIONS,
-            opts.epsilon if alone else COARSE_HANDOVER_STEP,
-        )
+        iterations = opts.max_iterations if alone else COARSE_MAX_ITERATIONS
+        stop = opts.epsilon if alone else COARSE_HANDOVER_STEP
+        coarse_ok, pnp_reason = run_pnp_stage(session, iterations, stop)
+        if not coarse_ok and session.level < 1.0:
+            # too few matches at the reduced level (a thin target far off): at full size
+            session.set_level(1.0)
+            _coarse_spp(session)
+            coarse_ok, pnp_reason = run_pnp_stage(session, iterations, stop)
         if alone:
             if not coarse_ok:
                 raise TooFewFeaturesError(
@@ -169,6 +167,14 @@ def _run_pipeline(session: Session, renderer_for: RendererFor, plan: LevelPlan) 
     window_from = session.current if session.current is not None else session.current_view()
     session.stage_spp = None  # the refinement renders with options.spp
     return _refine(session, renderer_for, plan, window_from)
+
+
+def _coarse_spp(session: Session) -> None:
+    """The coarse stage's samples per pixel at the session's level: as many per unit of image
+    area as spp gives at full resolution (see level_spp; only the coarse stage: a refinement
+    pass at a reduced level at spp·level² left a textured model's estimates further off)."""
+    opts = session.options
+    session.stage_spp = opts.coarse_spp or level_spp(opts.spp, session.level, opts.perturbation_spp)
 
 
 def check_lit(view: RenderedView, lighting: LightingSpec) -> None:

@@ -6,9 +6,9 @@ bring the pose within the last pass's reach, so they work on a reduced image: th
 area-averaged onto the camera scaled exactly (principal point and skew included, see
 ``PinholeCamera.scaled``), rendered with a sensor of that size. Only the last pass (and any
 pass a 'slow' one earns) works at the reference's resolution. Levels are powers of two, the
-smallest whose short side and target keep a floor: PnP on descriptor matches needs more pixels
-(COARSE_*) than the first refinement pass, which starts within a few tenths of a degree
-(FIRST_PASS_*).
+smallest whose short side and target keep a floor (COARSE_*, FIRST_PASS_*). When PnP finds too
+few descriptor matches at the coarse level (a thin target, far off), the coarse stage tries
+again at full resolution (worker.align.estimator).
 
 Once the coarse stage has placed the target, the refinement needs only the part of the image
 the target covers: its levels get a *window*, a square around the target's lit part with a
@@ -23,7 +23,11 @@ from dataclasses import dataclass, field
 from worker.engine.camera import PinholeCamera
 
 #: Shortest image side and smallest apparent target diameter of the coarse stage's level, px.
-COARSE_SIDE_PX, COARSE_TARGET_PX = 480, 240
+#: Twice these (the coarse stage at full resolution up to ~960 px) cost twice the renders at
+#: 512–640 px for the same accuracy (`proxpose bench --models iss,aura,phobos --bands 3,10,20
+#: --cases 2 --size 512,640x480 --methods default`: render cost 6.1 → 3.3 full renders at 512²,
+#: 5.4 → 2.6 at 640×480; median rotation 0.035° → 0.038°, 0.036° → 0.045°; 36/36 converged).
+COARSE_SIDE_PX, COARSE_TARGET_PX = 240, 120
 #: The same for the first refinement pass's level, px.
 FIRST_PASS_SIDE_PX, FIRST_PASS_TARGET_PX = 240, 120
 #: Shortest side of a perturbation render, px (a small image halved leaves the tracker too
