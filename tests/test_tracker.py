@@ -72,8 +72,13 @@ def test_track_writes_frames_in_order_and_recovers_from_a_lost_frame(
         assert f.errors.rotation_deg < 0.5, (f.index, f.errors)
         assert f.errors.translation_pct_of_range < 0.5, (f.index, f.errors)
     tracked = [f for f in result.frames if f.status == "tracked"]
-    # A tracked frame costs a few renders, not a full estimate's.
-    assert np.median([f.render_cost for f in tracked]) < 0.6 * result.frames[0].render_cost
+    # A tracked frame costs a few renders, not a full estimate's; one that learns its
+    # Jacobian again (perturbation renders at TRACK_PERTURBATION_SPP: on this short sequence
+    # most tracked frames do) costs less than one.
+    full = result.frames[0].render_cost
+    kept = [f.render_cost for f in tracked if not f.relearned]
+    assert kept and np.median(kept) < 0.3 * full
+    assert all(f.render_cost < full for f in tracked if f.relearned)
     s = result.summary
     assert (s.frames, s.lost) == (N_FRAMES, 1)
     assert s.tracked + s.reinitialised == N_FRAMES - 1

@@ -66,6 +66,16 @@ MIN_KEPT_FRACTION = 0.5
 #: Attitude change (deg) since the Jacobian was learned after which it is learned again.
 RELEARN_ROTATION_DEG = 6.0
 
+#: Samples per pixel (at least) of the perturbation renders a tracked frame learns its Jacobian
+#: from. A tracked frame's single step is only as good as its rows: noise in them shrinks the
+#: Gauss–Newton step along the weakly seen directions (out-of-plane rotation, a few hundredths
+#: of a pixel per 0.1°), and the rest of the error goes on into the velocity. Started 0.2° off
+#: the truth about the camera's x or y axis (Aura tumble, `rough`, frames 4 and 8), one step
+#: from rows learned at 4 spp left 0.055–0.18° along that axis, at 16 spp 0.005–0.075° (rows
+#: from 48 renders at 16 spp, or from the geometry: −0.013–0.065°); at 8 spp the sequences
+#: drifted again. A relearning costs ~0.5 s more at 512² (13 renders at 256², 16 spp).
+TRACK_PERTURBATION_SPP = 16
+
 #: Image motion (px, the largest of any feature) of the LM's first step below which a tracked
 #: frame takes it without a trial render (worker.align.refine's linear_step_px): the step from
 #: a good prediction moves the features by a few hundredths of a pixel, and its trial would
@@ -272,7 +282,10 @@ class Tracker:
     def _session(
         self, previous: Session, image: FloatImage, guess: Pose, truth: Pose | None
     ) -> Session:
-        opts = previous.options.model_copy(update={"max_iterations": FRAME_ITERATIONS})
+        spp = max(previous.options.perturbation_spp, TRACK_PERTURBATION_SPP)
+        opts = previous.options.model_copy(
+            update={"max_iterations": FRAME_ITERATIONS, "perturbation_spp": spp}
+        )
         return Session(
             renderer=previous.renderer,
             reference=image,
