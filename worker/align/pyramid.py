@@ -22,14 +22,15 @@ from dataclasses import dataclass, field
 
 from worker.engine.camera import PinholeCamera
 
-#: Shortest image side and smallest apparent target diameter of the coarse stage's level, px.
-#: Twice these (the coarse stage at full resolution up to ~960 px) cost twice the renders at
-#: 512–640 px for the same accuracy (`proxpose bench --models iss,aura,phobos --bands 3,10,20
-#: --cases 2 --size 512,640x480 --methods default`: render cost 6.1 → 3.3 full renders at 512²,
-#: 5.4 → 2.6 at 640×480; median rotation 0.035° → 0.038°, 0.036° → 0.045°; 36/36 converged).
-COARSE_SIDE_PX, COARSE_TARGET_PX = 240, 120
-#: The same for the first refinement pass's level, px.
+#: Shortest image side and smallest apparent target diameter of the first refinement pass's
+#: level, px.
 FIRST_PASS_SIDE_PX, FIRST_PASS_TARGET_PX = 240, 120
+#: The same for the coarse stage's level: the first pass's. Twice these (the coarse stage at
+#: full resolution up to ~960 px) cost twice the renders at 512–640 px for the same accuracy
+#: (`proxpose bench --models iss,aura,phobos --bands 3,10,20 --cases 2 --size 512,640x480
+#: --methods default`: render cost 6.1 → 3.3 full renders at 512², 5.4 → 2.6 at 640×480; median
+#: rotation 0.035° → 0.038°, 0.036° → 0.045°; 36/36 converged).
+COARSE_SIDE_PX, COARSE_TARGET_PX = FIRST_PASS_SIDE_PX, FIRST_PASS_TARGET_PX
 #: Shortest side of a perturbation render, px (a small image halved leaves the tracker too
 #: little to learn from).
 MIN_PERTURBATION_SIDE_PX = 256
