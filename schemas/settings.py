@@ -6,6 +6,7 @@ Every field is documented in the README's settings table (the descriptions here 
 
 from __future__ import annotations
 
+import os
 import re
 from functools import lru_cache
 from pathlib import Path
@@ -74,6 +75,12 @@ class Settings(BaseSettings):
     )
     llvm_path: Path | None = Field(
         default=None, description="libLLVM shared library for Dr.Jit (found automatically)."
+    )
+    parsed_model_cache: str = Field(
+        default="auto",
+        description="Where a model file's parse is kept for the next process, so that a GLB, PLY "
+        "or STL is parsed once (not by every `proxpose estimate`): a directory, 'auto' for "
+        "proxpose/parsed-models under $XDG_CACHE_HOME (default ~/.cache), or 'off'.",
     )
 
     # -- Redis and the queue
@@ -323,6 +330,15 @@ class Settings(BaseSettings):
     def effective_blob_store(self) -> str:
         """``blob_store``, or the directory ``blobs`` under ``data_dir`` when it is unset."""
         return self.blob_store or f"file://{Path(self.data_dir).absolute() / 'blobs'}"
+
+    def parsed_model_dir(self) -> Path | None:
+        """The directory ``parsed_model_cache`` names, None when it is 'off'."""
+        if self.parsed_model_cache == "off":
+            return None
+        if self.parsed_model_cache != "auto":
+            return Path(self.parsed_model_cache).expanduser()
+        base = os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache"
+        return Path(base) / "proxpose" / "parsed-models"
 
     def effective_redis_url(self) -> str:
         """``redis_url``, or the URL of the embedded Redis when it is unset."""

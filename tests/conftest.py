@@ -21,6 +21,26 @@ SHARED_MODEL_FILES = {
 }
 
 
+_session_dirs: list[str] = []
+
+
+def pytest_configure(config: pytest.Config) -> None:
+    """Parsed models go to a directory of this session's (workers started by the tests inherit
+    it), not to the user's ~/.cache."""
+    if "PROXPOSE_PARSED_MODEL_CACHE" not in os.environ:
+        import tempfile
+
+        _session_dirs.append(tempfile.mkdtemp(prefix="proxpose-parsed-"))
+        os.environ["PROXPOSE_PARSED_MODEL_CACHE"] = _session_dirs[-1]
+
+
+def pytest_unconfigure(config: pytest.Config) -> None:
+    import shutil
+
+    for path in _session_dirs:
+        shutil.rmtree(path, ignore_errors=True)
+
+
 @pytest.fixture(scope="session")
 def variant() -> str:
     """The Mitsuba variant for this test session (llvm_ad_rgb when available)."""

@@ -46,7 +46,7 @@ def run_estimate(
     from worker.align.estimator import estimate
 
     reference = decode_image(image, settings.max_image_pixels)
-    model = load_model(model_path, settings.max_model_faces)
+    model = load_model(model_path, settings.max_model_faces, settings.parsed_model_dir())
     est = estimate(model, reference, request, on_iteration, should_cancel)
     artifacts: dict[str, bytes] = {}
     if with_artifacts:
@@ -60,7 +60,8 @@ def render_png(model_path: str | Path, request: RenderRequest) -> bytes:
     init_renderer_backend()
     from worker.align.renderers import get_renderer, lighting_spec, texture_level
 
-    model = load_model(model_path, get_settings().max_model_faces)
+    settings = get_settings()
+    model = load_model(model_path, settings.max_model_faces, settings.parsed_model_dir())
     camera = PinholeCamera.from_schema(request.camera)
     R, t = pose_from_schema(request.pose)
     renderer = get_renderer(

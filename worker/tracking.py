@@ -80,7 +80,7 @@ def run_track(
     settings = get_settings()
     init_renderer_backend()
     check_frames(frames, request)
-    model = load_model(model_path, settings.max_model_faces)
+    model = load_model(model_path, settings.max_model_faces, settings.parsed_model_dir())
     tracker = Tracker(model, request.estimate_request(), should_cancel)
     truths = request.ground_truth
     out: list[TrackFrame] = []

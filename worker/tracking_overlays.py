@@ -54,7 +54,7 @@ def overlays(
     if not indices:
         return {}
     settings = get_settings()
-    model = load_model(model_path, settings.max_model_faces)
+    model = load_model(model_path, settings.max_model_faces, settings.parsed_model_dir())
     camera = PinholeCamera.from_schema(request.camera)
     first = result.frames[indices[0]].pose
     R0, t0 = np.asarray(first.R, dtype=np.float64), np.asarray(first.t, dtype=np.float64)

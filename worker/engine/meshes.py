@@ -19,8 +19,10 @@ import numpy as np
 from numpy.typing import NDArray
 
 from schemas.names import DEFAULT_MAX_MODEL_FACES, MODEL_FILE_TYPES
+from worker.engine import parsed_models
 from worker.engine.exceptions import ModelLoadError, ModelTooLargeError
 from worker.engine.images import srgb_decode
+from worker.engine.parsed_models import ParsedModel, ParsedPart
 
 log = logging.getLogger(__name__)
 
@@ -28,6 +30,9 @@ log = logging.getLogger(__name__)
 MAX_TEXTURE_SIDE_PX = 4096
 #: Models kept in each process's cache.
 MODEL_CACHE_SIZE = 4
+#: Linear value of each 8-bit sRGB code: a texture decodes by lookup (~50× the arithmetic);
+#: computed as an image (16 × 16), so with the same (OpenCV) power as a decoded image.
+_SRGB_DECODE_8BIT = srgb_decode(np.arange(256, dtype=np.float32).reshape(16, 16) / 255.0).ravel()
 #: Base colour of parts with no material (linear RGB).
 DEFAULT_ALBEDO = (0.5, 0.5, 0.5)
 
@@ -102,11 +107,17 @@ def file_sha256(path: Path) -> str:
     return h.hexdigest()
 
 
-def load_model(path: str | Path, max_faces: int = DEFAULT_MAX_MODEL_FACES) -> LoadedModel:
+def load_model(
+    path: str | Path,
+    max_faces: int = DEFAULT_MAX_MODEL_FACES,
+    parsed_dir: Path | None = None,
+) -> LoadedModel:
     """Load a mesh file (cached by content hash). Raises ModelLoadError / ModelTooLargeError.
 
     ``max_faces`` is the most triangles accepted: the worker passes its setting
     (``PROXPOSE_MAX_MODEL_FACES``), the same limit the API checks uploads against.
+    ``parsed_dir``, when given, keeps the parse of a self-contained file on disk for the next
+    process (:mod:`worker.engine.parsed_models`).
     """
     path = Path(path)
     if not path.is_file():
@@ -122,34 +133,24 @@ def load_model(path: str | Path, max_faces: int = DEFAULT_MAX_MODEL_FACES) -> Lo
         if cached.n_faces > max_faces:  # cached under a larger limit
             raise ModelTooLargeError(f"model has more than {max_faces} faces")
         return cached
-    model = _load_uncached(path, digest, max_faces)
+    model = _load_uncached(path, digest, max_faces, parsed_dir)
     _cache[digest] = model
     while len(_cache) > MODEL_CACHE_SIZE:
         _cache.popitem(last=False)
     return model
 
 
-def _load_uncached(path: Path, digest: str, max_faces: int) -> LoadedModel:
-    import trimesh
-
+def _load_uncached(path: Path, digest: str, max_faces: int, parsed_dir: Path | None) -> LoadedModel:
     file_type = MODEL_FILE_TYPES[path.suffix.lower()]
-    if file_type == "gltf":
-        _check_gltf_json(path)
-    try:
-        scene = trimesh.load(str(path), file_type=file_type, force="scene", process=False)
-    except Exception as exc:  # trimesh raises many types for bad files
-        raise ModelLoadError(f"cannot read {file_type.upper()} model: {exc}") from exc
-    parts = []
-    for node in scene.graph.nodes_geometry:
-        T, geom_name = scene.graph[node]
-        geom = scene.geometry.get(geom_name)
-        if not isinstance(geom, trimesh.Trimesh) or len(geom.faces) == 0:
-            continue
-        parts.append(_part_from_trimesh(geom, np.asarray(T, dtype=np.float64)))
-        if sum(len(p.faces) for p in parts) > max_faces:
-            raise ModelTooLargeError(f"model has more than {max_faces} faces")
-    if not parts:
-        raise ModelLoadError("model holds no triangles")
+    keep = parsed_dir is not None and file_type in parsed_models.SELF_CONTAINED
+    parsed = parsed_models.read(parsed_dir, digest) if keep else None  # type: ignore[arg-type]
+    if parsed is None:
+        parsed = _parse(path, file_type, max_faces)
+        if keep:
+            parsed_models.write(parsed_dir, digest, parsed)  # type: ignore[arg-type]
+    if sum(len(p.faces) for p in parsed.parts) > max_faces:  # kept under a larger limit
+        raise ModelTooLargeError(f"model has more than {max_faces} faces")
+    parts = _with_textures(parsed)
     verts = np.concatenate([p.vertices for p in parts])
     if not np.isfinite(verts).all():
         raise ModelLoadError("model has non-finite vertex coordinates")
@@ -167,6 +168,52 @@ def _load_uncached(path: Path, digest: str, max_faces: int) -> LoadedModel:
     )
 
 
+def _parse(path: Path, file_type: str, max_faces: int) -> ParsedModel:
+    """Read the file with trimesh: every geometry node, its transform applied."""
+    import trimesh
+
+    if file_type == "gltf":
+        _check_gltf_json(path)
+    try:
+        scene = trimesh.load(str(path), file_type=file_type, force="scene", process=False)
+    except Exception as exc:  # trimesh raises many types for bad files
+        raise ModelLoadError(f"cannot read {file_type.upper()} model: {exc}") from exc
+    parsed = ParsedModel([], [])
+    image_index: dict[int, int] = {}  # id of a PIL image → its index: decoded once, shared
+    for node in scene.graph.nodes_geometry:
+        T, geom_name = scene.graph[node]
+        geom = scene.geometry.get(geom_name)
+        if not isinstance(geom, trimesh.Trimesh) or len(geom.faces) == 0:
+            continue
+        T = np.asarray(T, dtype=np.float64)
+        parsed.parts.append(_part_from_trimesh(geom, T, parsed.images, image_index))
+        if sum(len(p.faces) for p in parsed.parts) > max_faces:
+            raise ModelTooLargeError(f"model has more than {max_faces} faces")
+    if not parsed.parts:
+        raise ModelLoadError("model holds no triangles")
+    return parsed
+
+
+def _with_textures(parsed: ParsedModel) -> list[MeshPart]:
+    """Renderer-ready parts: each base-colour image decoded to linear once (8-bit sRGB by
+    lookup), limited in size, and scaled by the part's factor where that is not 1."""
+    import cv2  # its LUT is ~5× numpy's indexing
+
+    lut = _SRGB_DECODE_8BIT.reshape(1, 256)
+    linear = [_limit_texture(cv2.LUT(image, lut)) for image in parsed.images]
+    parts = []
+    for p in parsed.parts:
+        texture = None
+        if p.image >= 0:
+            texture = linear[p.image]
+            if p.factor is not None and not np.all(p.factor == 1.0):
+                texture = (texture * p.factor).astype(np.float32, copy=False)
+        parts.append(
+            MeshPart(p.vertices, p.faces, p.normals, p.uvs, texture, p.vertex_colors, p.albedo)
+        )
+    return parts
+
+
 def _check_gltf_json(path: Path) -> None:
     """A .gltf must be a JSON object: trimesh reads a sibling 'model.gltf' instead of a file it
     cannot parse, which would silently load another model."""
@@ -178,7 +225,12 @@ def _check_gltf_json(path: Path) -> None:
         raise ModelLoadError("cannot read GLTF model: not a JSON object")
 
 
-def _part_from_trimesh(mesh: object, T: NDArray[np.float64]) -> MeshPart:
+def _part_from_trimesh(
+    mesh: object,
+    T: NDArray[np.float64],
+    images: list[NDArray[np.uint8]],
+    image_index: dict[int, int],
+) -> ParsedPart:
     """Vertices transformed by the node matrix T; normals by its inverse transpose."""
     import trimesh
 
@@ -196,37 +248,40 @@ def _part_from_trimesh(mesh: object, T: NDArray[np.float64]) -> MeshPart:
     faces = np.asarray(mesh.faces, dtype=np.uint32)
     if np.linalg.det(T[:3, :3]) < 0:  # a mirroring node flips the winding
         faces = faces[:, ::-1].copy()
-    uvs, texture, colors, albedo = _material(mesh)
-    return MeshPart(V.astype(np.float32), faces, normals, uvs, texture, colors, albedo)
+    part = ParsedPart(V.astype(np.float32), faces, normals, None, None, DEFAULT_ALBEDO)
+    _material(mesh, part, images, image_index)
+    return part
 
 
 def _material(
     mesh: object,
-) -> tuple[
-    NDArray[np.float32] | None,
-    NDArray[np.float32] | None,
-    NDArray[np.float32] | None,
-    tuple[float, float, float],
-]:
-    """(uvs, linear texture, linear vertex colours, linear albedo) of a trimesh mesh."""
+    part: ParsedPart,
+    images: list[NDArray[np.uint8]],
+    image_index: dict[int, int],
+) -> None:
+    """The part's UVs and texture image, linear vertex colours, linear albedo, from trimesh."""
     visual = getattr(mesh, "visual", None)
     kind = getattr(visual, "kind", None)
     if kind == "vertex" or kind == "face":
         rgb = np.asarray(visual.vertex_colors, dtype=np.float32)[:, :3] / 255.0  # type: ignore
-        return None, None, srgb_decode(rgb), DEFAULT_ALBEDO
+        part.vertex_colors = srgb_decode(rgb)
+        return
     material = getattr(visual, "material", None)
     if material is None:
-        return None, None, None, DEFAULT_ALBEDO
+        return
     factor, image = _base_colour(material)
-    albedo = tuple(float(c) for c in factor)
+    part.albedo = tuple(float(c) for c in factor)  # type: ignore[assignment]
     uv = getattr(visual, "uv", None)
     if image is None or uv is None or len(uv) != len(mesh.vertices):  # type: ignore
-        return None, None, None, albedo  # type: ignore[return-value]
-    tex = srgb_decode(np.asarray(image.convert("RGB"), dtype=np.float32) / 255.0)
-    tex = _limit_texture(tex) * np.asarray(factor, dtype=np.float32)
+        return
+    if id(image) not in image_index:  # the scene holds its images while it loads: ids unique
+        image_index[id(image)] = len(images)
+        images.append(np.ascontiguousarray(np.asarray(image.convert("RGB"), dtype=np.uint8)))
+    part.image = image_index[id(image)]
+    part.factor = np.asarray(factor, dtype=np.float32)
     uvs = np.asarray(uv, dtype=np.float32).copy()
     uvs[:, 1] = 1.0 - uvs[:, 1]
-    return uvs, tex.astype(np.float32), None, albedo  # type: ignore[return-value]
+    part.uvs = uvs
 
 
 def _base_colour(material: object) -> tuple[NDArray[np.float32], object | None]:
