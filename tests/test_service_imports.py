@@ -50,6 +50,26 @@ def test_cli_parser_loads_nothing_heavy() -> None:
     assert not loaded & {*HEAVY, "fastapi", "rq", "numpy", "trimesh"}
 
 
+def test_an_engine_command_imports_no_other_command_module() -> None:
+    """``proxpose estimate`` registers only its own arguments: the load test's and the client's
+    modules (httpx: 0.3 s of the command's start-up) are not imported; the help lists them all."""
+    loaded = _loaded_after(
+        "from worker.cli import build_parser\nbuild_parser(['-v', 'estimate', '--model', 'm.glb'])"
+    )
+    assert not loaded & {"httpx", "matplotlib", "trimesh"}, loaded
+    listed = subprocess.run(
+        [sys.executable, "-m", "worker.cli", "--help"], cwd=REPO, capture_output=True, text=True
+    ).stdout
+    assert all(name in listed for name in ("loadtest", "bench", "serve", "submit", "estimate"))
+    loadtest = subprocess.run(
+        [sys.executable, "-m", "worker.cli", "loadtest", "--help"],
+        cwd=REPO,
+        capture_output=True,
+        text=True,
+    ).stdout
+    assert "--clients" in loadtest
+
+
 def test_the_client_imports_only_httpx_pydantic_and_the_schemas() -> None:
     loaded = _loaded_after("import service.client, service.client_cli")
     assert "httpx" in loaded and "pydantic" in loaded

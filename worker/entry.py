@@ -9,6 +9,7 @@ checks uploads against, so that what the API accepts a worker does not refuse.
 from __future__ import annotations
 
 import logging
+import time
 from pathlib import Path
 
 from schemas.estimate import EstimateRequest, EstimateResult
@@ -42,15 +43,26 @@ def run_estimate(
 ) -> tuple[EstimateResult, dict[str, bytes]]:
     """Estimate the pose; returns the result (artifact names filled in) and the PNG artifacts."""
     settings = get_settings()
-    init_renderer_backend()
+    start = time.perf_counter()
+    variant = init_renderer_backend()
     from worker.align.estimator import estimate
 
+    ready = time.perf_counter()
     reference = decode_image(image, settings.max_image_pixels)
     model = load_model(model_path, settings.max_model_faces, settings.parsed_model_dir())
+    loaded = time.perf_counter()
+    log.info(
+        "ready: variant %s %.2f s, then reference and model %.2f s",
+        variant,
+        ready - start,
+        loaded - ready,
+    )
     est = estimate(model, reference, request, on_iteration, should_cancel)
     artifacts: dict[str, bytes] = {}
     if with_artifacts:
+        done = time.perf_counter()
         artifacts = make_artifacts(est.result, est.reference, est.views)
+        log.info("artifacts %.2f s", time.perf_counter() - done)
     est.result.artifacts = list(artifacts)
     return est.result, artifacts
 
