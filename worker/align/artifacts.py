@@ -32,6 +32,10 @@ ARTIFACT_NAMES = (
 )
 
 
+#: zlib level of the artifact PNGs: the fastest. An overlay of a noisy 1920×1200 reference
+#: took 0.58 s at PIL's default (6) and 0.19 s at 1, for 1.18 → 1.54 MB (lossless either way);
+#: the four full-size images were a second of every 1920×1200 job's time.
+PNG_LEVEL = 1
 #: Pixels above this fraction of a render's brightest show the target (the rest is sky).
 SKY_LEVEL = 0.02
 
@@ -68,7 +72,7 @@ def overlay(reference: FloatImage, view: RenderedView) -> bytes:
     floor = 0.0 if sky else float(np.percentile(render_grey, 1.0))
     ren = _stretch(np.clip(render_grey - floor, 0.0, None))
     rgb = np.stack([ref, np.zeros_like(ref), ren], axis=-1)
-    return encode_png(rgb)
+    return encode_png(rgb, compress_level=PNG_LEVEL)
 
 
 def difference(reference: FloatImage, view: RenderedView) -> bytes:
@@ -77,7 +81,7 @@ def difference(reference: FloatImage, view: RenderedView) -> bytes:
     top = max(float(np.percentile(view.grey, 99.8)), 1e-6)
     u8 = (np.clip(diff / top, 0.0, 1.0) * 255.0 + 0.5).astype(np.uint8)
     bgr = cv2.applyColorMap(u8, cv2.COLORMAP_INFERNO)
-    return encode_png(np.ascontiguousarray(bgr[..., ::-1]))
+    return encode_png(np.ascontiguousarray(bgr[..., ::-1]), compress_level=PNG_LEVEL)
 
 
 #: Convergence plot: one panel's width and the figure's height, and the margins, in inches.
@@ -143,6 +147,6 @@ def make_artifacts(
         "overlay_2": overlay(reference, views.get("second", final)),
         "overlay_final": overlay(reference, final),
         "difference": difference(reference, final),
-        "final_render": encode_png(to_display(final.linear)),
+        "final_render": encode_png(to_display(final.linear), compress_level=PNG_LEVEL),
         "convergence": convergence_plot(result),
     }

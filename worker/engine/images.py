@@ -125,8 +125,11 @@ def to_uint8(image: NDArray[np.floating]) -> NDArray[np.uint8]:
     return (np.clip(image, 0.0, 1.0) * 255.0 + 0.5).astype(np.uint8)
 
 
-def encode_png(image: NDArray[np.floating] | NDArray[np.uint8], bits: int = 8) -> bytes:
-    """PNG bytes of a [0, 1] float (or uint8) image, grey or RGB; ``bits`` 8 or 16."""
+def encode_png(
+    image: NDArray[np.floating] | NDArray[np.uint8], bits: int = 8, compress_level: int = 6
+) -> bytes:
+    """PNG bytes of a [0, 1] float (or uint8) image, grey or RGB; ``bits`` 8 or 16;
+    ``compress_level`` zlib's, 1 (fastest) to 9 (smallest)."""
     if image.dtype == np.uint8:
         arr: NDArray[np.generic] = image
     elif bits == 16:
@@ -137,9 +140,10 @@ def encode_png(image: NDArray[np.floating] | NDArray[np.uint8], bits: int = 8) -
     if arr.dtype == np.uint16 and arr.ndim == 3:
         import cv2
 
-        ok, enc = cv2.imencode(".png", np.ascontiguousarray(arr[..., ::-1]))
+        params = [cv2.IMWRITE_PNG_COMPRESSION, compress_level]
+        ok, enc = cv2.imencode(".png", np.ascontiguousarray(arr[..., ::-1]), params)
         if not ok:
             raise ImageDecodeError("PNG encoding failed")
         return enc.tobytes()
-    Image.fromarray(arr).save(buf, format="PNG")
+    Image.fromarray(arr).save(buf, format="PNG", compress_level=compress_level)
     return buf.getvalue()
