@@ -199,8 +199,8 @@ def _with_textures(parsed: ParsedModel) -> list[MeshPart]:
     lookup) and limited in size; each part gets its own array of it, scaled by its factor.
 
     Not OpenCV's LUT, though ~5× faster here: with it, 2 of 3 warm Phobos bench estimates ran
-    at half speed throughout (renders and matching; 4.6 and 5.1 s against 2.2 s, 3 of 3 at
-    2.3-2.7 s with numpy), an interaction with the renderer's threads not pinned down.
+    at half speed throughout (4.6 and 5.1 s against 2.2 s; 6 of 6 at 2.0-2.7 s with numpy).
+    That may be chance, as this VM's speed is bimodal from run to run, but it was not risked.
     """
     linear = [_limit_texture(_SRGB_DECODE_8BIT[image]) for image in parsed.images]
     parts, taken = [], set()
