@@ -321,13 +321,12 @@ BLAS_THREADS = "1"
 #: :func:`run`): the interpreter's teardown of Dr.Jit (its kernels, recordings and threads)
 #: took 0.3 s of every ``proxpose estimate`` (0.04 s without) and does nothing for anyone.
 FAST_EXIT_COMMANDS = frozenset({"estimate", "render", "track"})
-_command: list[str] = []  # the command main() ran (read by run())
 
 
 def run() -> None:
     """The ``proxpose`` console script: :func:`main`, then the process's exit."""
-    code = main()
-    if _command and _command[-1] in FAST_EXIT_COMMANDS:
+    code = main()  # returns only after its command line parsed: the command is the one named
+    if _command_in(sys.argv[1:]) in FAST_EXIT_COMMANDS:
         logging.shutdown()
         for stream in (sys.stdout, sys.stderr):
             try:
@@ -343,7 +342,6 @@ def main(argv: list[str] | None = None) -> int:
     os.environ.setdefault("OPENBLAS_NUM_THREADS", BLAS_THREADS)
     argv = sys.argv[1:] if argv is None else argv
     args = build_parser(argv).parse_args(argv)
-    _command[:] = [args.command]
     logging.basicConfig(
         level=logging.INFO if args.verbose else logging.WARNING,
         format="%(asctime)s %(levelname)s %(name)s: %(message)s",

@@ -20,7 +20,7 @@ from worker.align.session import CancelCheck, ProgressCallback
 from worker.engine.camera import PinholeCamera
 from worker.engine.exceptions import EmptyRenderError
 from worker.engine.images import decode_image, encode_png, to_display
-from worker.engine.meshes import load_model
+from worker.engine.meshes import LoadedModel, load_model
 from worker.engine.posemath import pose_from_schema
 from worker.engine.variant import choose_variant
 
@@ -31,6 +31,13 @@ def init_renderer_backend() -> str:
     """Pick the Mitsuba variant from the settings (once per process) and return it."""
     settings = get_settings()
     return choose_variant(settings.variant, settings.llvm_path)
+
+
+def load_target(model_path: str | Path) -> LoadedModel:
+    """The model at ``model_path`` under the process's settings: the face limit the API checks
+    uploads against, and the on-disk parsed-model cache."""
+    settings = get_settings()
+    return load_model(model_path, settings.max_model_faces, settings.parsed_model_dir())
 
 
 def run_estimate(
@@ -49,7 +56,7 @@ def run_estimate(
 
     ready = time.perf_counter()
     reference = decode_image(image, settings.max_image_pixels)
-    model = load_model(model_path, settings.max_model_faces, settings.parsed_model_dir())
+    model = load_target(model_path)
     loaded = time.perf_counter()
     log.info(
         "ready: variant %s %.2f s, then reference and model %.2f s",
@@ -72,8 +79,7 @@ def render_png(model_path: str | Path, request: RenderRequest) -> bytes:
     init_renderer_backend()
     from worker.align.renderers import get_renderer, lighting_spec, texture_level
 
-    settings = get_settings()
-    model = load_model(model_path, settings.max_model_faces, settings.parsed_model_dir())
+    model = load_target(model_path)
     camera = PinholeCamera.from_schema(request.camera)
     R, t = pose_from_schema(request.pose)
     renderer = get_renderer(

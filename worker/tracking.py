@@ -15,9 +15,8 @@ from schemas.settings import get_settings
 from schemas.track import TrackFrame, TrackRequest, TrackResult, summarise
 from worker.engine.exceptions import ImageSizeMismatchError, InvalidInputError
 from worker.engine.images import decode_image
-from worker.engine.meshes import load_model
 from worker.engine.posemath import pose_from_schema, pose_to_schema
-from worker.entry import init_renderer_backend
+from worker.entry import init_renderer_backend, load_target
 
 #: Frame file types, by suffix (taken in name order).
 FRAME_SUFFIXES = (".png", ".jpg", ".jpeg", ".tif", ".tiff")
@@ -80,7 +79,7 @@ def run_track(
     settings = get_settings()
     init_renderer_backend()
     check_frames(frames, request)
-    model = load_model(model_path, settings.max_model_faces, settings.parsed_model_dir())
+    model = load_target(model_path)
     tracker = Tracker(model, request.estimate_request(), should_cancel)
     truths = request.ground_truth
     out: list[TrackFrame] = []

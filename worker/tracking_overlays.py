@@ -17,7 +17,7 @@ from worker.align.renderers import get_renderer, lighting_spec, texture_level
 from worker.engine.camera import PinholeCamera
 from worker.engine.exceptions import EstimationCancelled
 from worker.engine.images import decode_image, to_grey
-from worker.engine.meshes import load_model
+from worker.entry import load_target
 from worker.tracking import FrameFile
 
 #: Samples per pixel of an overlay's render (the overlay shows structure, not noise).
@@ -54,7 +54,7 @@ def overlays(
     if not indices:
         return {}
     settings = get_settings()
-    model = load_model(model_path, settings.max_model_faces, settings.parsed_model_dir())
+    model = load_target(model_path)
     camera = PinholeCamera.from_schema(request.camera)
     first = result.frames[indices[0]].pose
     R0, t0 = np.asarray(first.R, dtype=np.float64), np.asarray(first.t, dtype=np.float64)

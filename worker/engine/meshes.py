@@ -142,12 +142,12 @@ def load_model(
 
 def _load_uncached(path: Path, digest: str, max_faces: int, parsed_dir: Path | None) -> LoadedModel:
     file_type = MODEL_FILE_TYPES[path.suffix.lower()]
-    keep = parsed_dir is not None and file_type in parsed_models.SELF_CONTAINED
-    parsed = parsed_models.read(parsed_dir, digest) if keep else None  # type: ignore[arg-type]
+    keep_in = parsed_dir if file_type in parsed_models.SELF_CONTAINED else None
+    parsed = parsed_models.read(keep_in, digest) if keep_in is not None else None
     if parsed is None:
         parsed = _parse(path, file_type, max_faces)
-        if keep:
-            parsed_models.write(parsed_dir, digest, parsed)  # type: ignore[arg-type]
+        if keep_in is not None:
+            parsed_models.write(keep_in, digest, parsed)
     if sum(len(p.faces) for p in parsed.parts) > max_faces:  # kept under a larger limit
         raise ModelTooLargeError(f"model has more than {max_faces} faces")
     parts = _with_textures(parsed)
