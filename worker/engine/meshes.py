@@ -13,6 +13,7 @@ import json
 import logging
 from collections import OrderedDict
 from dataclasses import dataclass, field
+from functools import cached_property
 from pathlib import Path
 
 import numpy as np
@@ -87,6 +88,11 @@ class LoadedModel:
     def has_vertex_normals(self) -> bool:
         """Whether any part has its own (smooth) shading normals."""
         return any(p.normals is not None for p in self.parts)
+
+    @cached_property
+    def finest_texels_per_unit(self) -> float:
+        """The largest texture resolution of its parts, texels per scene unit (0 if none)."""
+        return max((p.texels_per_unit for p in self.parts), default=0.0)
 
     @property
     def radius(self) -> float:
