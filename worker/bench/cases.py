@@ -222,25 +222,55 @@ def build_case(task: CaseTask, model: LoadedModel) -> tuple[Case, int]:
     return make_case(model, camera, spec, ref_seed, reference=task.reference), est_seed
 
 
-def run_case(task: CaseTask, on_record: RecordCallback | None = None) -> CaseOutcome:
-    """Render the case of ``task`` and run every method on it (warming each method up once)."""
+@dataclass
+class PreparedCase:
+    """A case made and measured, ready for its estimates: the model it was made from, its
+    reference, the estimator seed and the time of one full-resolution render."""
+
+    model: LoadedModel
+    case: Case
+    est_seed: int
+    render_s: float
+
+
+def prepare_case(task: CaseTask, model: LoadedModel | None = None) -> PreparedCase:
+    """Render the reference of ``task`` and time one full-resolution render of its model.
+
+    Both build Mitsuba scenes, and building any scene makes every render kernel recorded
+    before it record again on its next call (Dr.Jit's frozen functions see the new objects:
+    ~0.3 s per recorded render on a model with many parts, 1–2 s an estimate). So a serial run
+    prepares every case first (``worker.bench.cli.run_serial``) and no scene is built between a
+    method's warm-up and its timed estimates, as in a worker that has served the model and
+    camera before."""
     from worker.engine.meshes import load_model
 
-    model = load_model(task.model_path)
+    model = model if model is not None else load_model(task.model_path)
     case, est_seed = build_case(task, model)
+    return PreparedCase(model, case, est_seed, full_render_seconds(model, case.request))
+
+
+def run_case(task: CaseTask, on_record: RecordCallback | None = None) -> CaseOutcome:
+    """Prepare the case of ``task`` and run every method on it (warming each method up once)."""
+    return run_prepared(task, prepare_case(task), on_record)
+
+
+def run_prepared(
+    task: CaseTask, prepared: PreparedCase, on_record: RecordCallback | None = None
+) -> CaseOutcome:
+    """Run every method on a prepared case, warming each (model, method, size) up once."""
+    model, case = prepared.model, prepared.case
     reference = case.reference.astype(np.float32) / 255.0  # as decode_image reads an 8-bit PNG
     warmups = []
     for spec in task.methods:
         if (key := (task.model_path, spec.label, task.size)) not in _warmed:
             warmups.append(warm_up(model, task.model_path, reference, case, spec))
             _warmed.add(key)
-    render_s = full_render_seconds(model, case.request)
     records = []
     for start in task.starts:
         started = case if start == "offset" else _from_truth(case)
-        fields = {**_case_fields(task, started), "start": start, "render_s": render_s}
+        fields = {**_case_fields(task, started), "start": start, "render_s": prepared.render_s}
         for spec in task.methods:
-            record = run_method(model, reference, started, spec, est_seed, fields)
+            record = run_method(model, reference, started, spec, prepared.est_seed, fields)
             records.append(record)
             if on_record is not None:
                 on_record(record)

@@ -202,12 +202,22 @@ class Progress:
 
 
 def run_serial(tasks: list[CaseTask], progress: Progress, done: dict[int, CaseOutcome]) -> None:
-    """Every case in this process, in order, into ``done`` (by task index)."""
-    from worker.bench.cases import run_case
+    """Every case in this process, into ``done`` (by task index): first every reference and
+    full-render time, then the estimates (see :func:`worker.bench.cases.prepare_case`: a scene
+    built between a warm-up and a timed estimate would put its kernels' recording in the
+    timing)."""
+    from worker.bench.cases import prepare_case, run_prepared
+    from worker.engine.meshes import LoadedModel, load_model
 
-    for i, task in enumerate(tasks):
+    models: dict[str, LoadedModel] = {}
+    prepared = []
+    for task in tasks:
         progress.starting(task)
-        done[i] = run_case(task, progress.record)
+        model = models.get(task.model_path) or load_model(task.model_path)
+        models[task.model_path] = model
+        prepared.append(prepare_case(task, model))
+    for i, (task, case) in enumerate(zip(tasks, prepared, strict=True)):
+        done[i] = run_prepared(task, case, progress.record)
 
 
 def _init_worker(threads: int) -> None:
