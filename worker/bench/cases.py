@@ -237,8 +237,8 @@ def prepare_case(task: CaseTask, model: LoadedModel | None = None) -> PreparedCa
     """Render the reference of ``task`` and time one full-resolution render of its model.
 
     Both build Mitsuba scenes, and building any scene makes every render kernel recorded
-    before it record again on its next call (Dr.Jit's frozen functions see the new objects:
-    ~0.3 s per recorded render on a model with many parts, 1–2 s an estimate). So a serial run
+    before it record again on its next call (Dr.Jit's frozen functions see the new objects;
+    1–3 s of the next ISS or Phobos estimate at 512²). So a serial run
     prepares every case first (``worker.bench.cli.run_serial``) and no scene is built between a
     method's warm-up and its timed estimates, as in a worker that has served the model and
     camera before."""
@@ -250,7 +250,7 @@ def prepare_case(task: CaseTask, model: LoadedModel | None = None) -> PreparedCa
 
 
 def run_case(task: CaseTask, on_record: RecordCallback | None = None) -> CaseOutcome:
-    """Prepare the case of ``task`` and run every method on it (warming each method up once)."""
+    """Prepare the case of ``task`` and run every method on it (see :func:`run_prepared`)."""
     return run_prepared(task, prepare_case(task), on_record)
 
 
