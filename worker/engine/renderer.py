@@ -329,8 +329,7 @@ class Renderer:
     def coverage(self, R: ArrayLike, t: ArrayLike, grid: int = 64) -> float:
         """Fraction of the image the model covers at (R, t), from a grid of rays."""
         cam = self.camera
-        us = np.linspace(0, cam.width - 1, grid)
-        vs = np.linspace(0, cam.height - 1, grid)
+        us, vs = np.linspace(0, cam.width - 1, grid), np.linspace(0, cam.height - 1, grid)
         uv = np.stack(np.meshgrid(us, vs), axis=-1).reshape(-1, 2)
         return float(self.raycast(R, t, uv)[1].mean())
 
@@ -352,10 +351,10 @@ def _plain_render(scene: object, sensor: int, spp: int, seed: int) -> object:
 
 def _frozen_render(sensors: int = 1) -> Callable[[object, int, int, int], object]:
     """``mi.render`` under ``dr.freeze``: the first calls per (sensor, spp) record the kernel
-    launches, later ones replay them with the scene's current parameters (pose, lights) and
-    skip tracing. Tracing costs little for one mesh but grows with every part and texture of
-    a model (66 ms of a 95 ms render for the 40-part demo satellite); the output is identical.
-    """
+    launches, later ones replay them with the scene's current parameters (pose, lights, the
+    seed, which goes in opaque: as a literal, another seed recorded every render again) and skip
+    tracing, which grows with every part and texture of a model (66 of a 95 ms render for the
+    40-part demo satellite); the output is identical. ``call.frozen``: the frozen function."""
     import drjit as dr
     import mitsuba as mi
 
@@ -364,11 +363,9 @@ def _frozen_render(sensors: int = 1) -> Callable[[object, int, int, int], object
         return mi.render(scene, sensor=sensor, spp=spp, seed=seed)
 
     def call(scene: object, sensor: int, spp: int, seed: int) -> object:
-        # an opaque seed: as a literal, the first call with another seed (another estimate's,
-        # or the bench's timed run after its warm-up) recorded every render again
         return render(scene, sensor, spp, dr.opaque(mi.UInt32, seed))
 
-    call.frozen = render  # type: ignore[attr-defined]  # for tests: its n_recordings
+    call.frozen = render  # type: ignore[attr-defined]
     return call
 
 
