@@ -233,18 +233,17 @@ class PreparedCase:
     render_s: float
 
 
-def prepare_case(task: CaseTask, model: LoadedModel | None = None) -> PreparedCase:
+def prepare_case(task: CaseTask) -> PreparedCase:
     """Render the reference of ``task`` and time one full-resolution render of its model.
 
     Both build Mitsuba scenes, and building any scene makes every render kernel recorded
     before it record again on its next call (Dr.Jit's frozen functions see the new objects;
-    1–3 s of the next ISS or Phobos estimate at 512²). So a serial run
-    prepares every case first (``worker.bench.cli.run_serial``) and no scene is built between a
-    method's warm-up and its timed estimates, as in a worker that has served the model and
-    camera before."""
+    1–3 s of the next ISS or Phobos estimate at 512²). So a serial run prepares every case
+    first (``worker.bench.cli.run_serial``) and no scene is built between a method's warm-up
+    and its timed estimates, as in a worker that has served the model and camera before."""
     from worker.engine.meshes import load_model
 
-    model = model if model is not None else load_model(task.model_path)
+    model = load_model(task.model_path)  # cached by content across the run's cases
     case, est_seed = build_case(task, model)
     return PreparedCase(model, case, est_seed, full_render_seconds(model, case.request))
 

@@ -207,15 +207,11 @@ def run_serial(tasks: list[CaseTask], progress: Progress, done: dict[int, CaseOu
     built between a warm-up and a timed estimate would put its kernels' recording in the
     timing)."""
     from worker.bench.cases import prepare_case, run_prepared
-    from worker.engine.meshes import LoadedModel, load_model
 
-    models: dict[str, LoadedModel] = {}
     prepared = []
     for task in tasks:
         progress.starting(task)
-        model = models.get(task.model_path) or load_model(task.model_path)
-        models[task.model_path] = model
-        prepared.append(prepare_case(task, model))
+        prepared.append(prepare_case(task))
     for i, (task, case) in enumerate(zip(tasks, prepared, strict=True)):
         done[i] = run_prepared(task, case, progress.record)
 
