@@ -5,6 +5,7 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
+import numpy as np
 import pytest
 from test_bench import QUICK_TIMEOUT_S, proxpose
 
@@ -19,6 +20,8 @@ def test_quick_bench_with_the_terrain_band(tmp_path: Path) -> None:
         "--terrain",
         "--methods",
         "default",
+        "--sun-elevation",
+        "30,40",
         "--output",
         str(tmp_path / "out"),
         env={"PROXPOSE_DATA_DIR": str(tmp_path / "data")},
@@ -35,3 +38,37 @@ def test_quick_bench_with_the_terrain_band(tmp_path: Path) -> None:
     assert [g["group"] for g in data["summary"]["by_terrain"]] == ["terrain", "terrain-ridged"]
     md = (tmp_path / "out" / "bench.md").read_text()
     assert "### Terrain band" in md and "#### `terrain-ridged`" in md
+    assert "sun 30–40° above the horizon" in md and data["config"]["sun_elevation_deg"] == [30, 40]
+
+
+def _elevation_deg(sun_camera: np.ndarray, R: np.ndarray) -> float:
+    """Elevation of a camera-frame sun direction above the terrain's horizon (+y up)."""
+    return float(np.degrees(np.arcsin((R.T @ sun_camera)[1])))
+
+
+def test_terrain_case_puts_the_sun_at_the_asked_elevation(tmp_path: Path) -> None:
+    """make_terrain_case draws the sun's elevation from the range it is given: the request's
+    sun at it, the reference's true sun SUN_ERROR_DEG away from the request's."""
+    from worker.bench.cases import bench_camera
+    from worker.bench.synth import CaseSpec
+    from worker.bench.terrain import SUN_ERROR_DEG, make_terrain_case, terrain_model_path
+    from worker.engine.meshes import load_model
+    from worker.entry import init_renderer_backend
+
+    init_renderer_backend()
+    model = load_model(terrain_model_path("terrain", tmp_path))
+    for elevation in (8.0, 40.0):
+        case = make_terrain_case(
+            model, bench_camera(48, 48), CaseSpec(3.0, 0.03), 5, sun_elevation_deg=(elevation,) * 2
+        )
+        asked = np.asarray(case.request.lighting.sun_direction)
+        assert _elevation_deg(asked, case.R_true) == pytest.approx(elevation, abs=1e-6)
+        off = np.degrees(np.arccos(np.clip(asked @ case.sun_true, -1.0, 1.0)))
+        assert off == pytest.approx(SUN_ERROR_DEG, abs=0.01)
+
+
+@pytest.mark.parametrize("value", ["50,40", "0,10", "10", "10,90"])
+def test_bench_rejects_a_bad_sun_elevation(value: str) -> None:
+    out = proxpose("bench", "--terrain", "--sun-elevation", value, "--output", "/nonexistent")
+    assert out.returncode == 2
+    assert "--sun-elevation" in out.stderr

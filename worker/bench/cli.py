@@ -150,6 +150,12 @@ def _add_suite_arguments(parser: argparse.ArgumentParser) -> None:
         "the held-out terrain-ridged), references ray traced with other physics, each estimate "
         "also started at the truth",
     )
+    parser.add_argument(
+        "--sun-elevation",
+        type=_float_csv,
+        help="LO,HI: the terrain band's sun elevation above the horizon, degrees, drawn uniformly "
+        "(default 25,45; a low sun casts long shadows)",
+    )
 
 
 def _add_sequence_arguments(parser: argparse.ArgumentParser) -> None:

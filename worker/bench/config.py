@@ -57,6 +57,7 @@ def make_config(args: argparse.Namespace) -> dict[str, Any]:
         "offsets": args.offsets,
         "jobs": args.jobs,
         "save_cases": args.save_cases,
+        "sun_elevation_deg": _sun_elevation(getattr(args, "sun_elevation", None)),
     }
     band_edges(config["bands"])
     if len(set(config["methods"])) != len(config["methods"]):
@@ -75,6 +76,20 @@ def make_config(args: argparse.Namespace) -> dict[str, Any]:
 def _models(names: list[str], terrain: bool) -> list[str]:
     """The suite's models, with the terrain band's appended when asked for (``--terrain``)."""
     return names + [m for m in TERRAIN_MODEL_NAMES if terrain and m not in names]
+
+
+def _sun_elevation(values: list[float] | None) -> list[float]:
+    """The terrain band's sun elevation range, degrees: LO,HI with 0 < LO ≤ HI < 90."""
+    from worker.bench.cases import BenchSetupError
+    from worker.bench.terrain import SUN_ELEVATION_DEG
+
+    if values is None:
+        return list(SUN_ELEVATION_DEG)
+    if len(values) != 2 or not 0.0 < values[0] <= values[1] < 90.0:
+        raise BenchSetupError(
+            f"--sun-elevation must be LO,HI degrees with 0 < LO <= HI < 90, got {values}"
+        )
+    return values
 
 
 def _references(names: list[str] | None) -> list[str]:
@@ -132,6 +147,7 @@ def make_tasks(
             save_cases=config["save_cases"],
             reference=reference,
             starts=plan(name)["starts"],
+            sun_elevation_deg=tuple(config["sun_elevation_deg"]),
         )
         for w, h in config["sizes"]
         for name, path in models

@@ -2,10 +2,11 @@
 
 The truth puts the camera ``ALTITUDE_M`` above a point near the patch centre, tilted
 ``TILT_DEG`` from the nadir at a random azimuth; the sun stands ``SUN_ELEVATION_DEG`` above the
-horizon at a random azimuth. The reference is made with physics unlike the estimator's (the
-robustness suite's ray tracer: a Lommel–Seeliger/Lambert regolith law, flat shading normals,
-a shadow ray, jittered supersampling), the request's sun ``SUN_ERROR_DEG`` off, exposure 0.7,
-gamma 2.2 and noise. The initial guess is the truth rotated and moved by the band's offset.
+horizon (by default; ``proxpose bench --sun-elevation``) at a random azimuth. The reference
+is made with physics unlike the estimator's (the robustness suite's ray tracer: a
+Lommel–Seeliger/Lambert regolith law, flat shading normals, a shadow ray, jittered
+supersampling), the request's sun ``SUN_ERROR_DEG`` off, exposure 0.7, gamma 2.2 and noise.
+The initial guess is the truth rotated and moved by the band's offset.
 """
 
 from __future__ import annotations
