@@ -72,3 +72,11 @@ def test_bench_rejects_a_bad_sun_elevation(value: str) -> None:
     out = proxpose("bench", "--terrain", "--sun-elevation", value, "--output", "/nonexistent")
     assert out.returncode == 2
     assert "--sun-elevation" in out.stderr
+
+
+def test_bench_rejects_a_sun_elevation_without_terrain() -> None:
+    out = proxpose(
+        "bench", "--models", "demo", "--sun-elevation", "5,15", "--output", "/nonexistent"
+    )
+    assert out.returncode == 2
+    assert "--sun-elevation applies to the terrain band" in out.stderr

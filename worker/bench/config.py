@@ -60,6 +60,12 @@ def make_config(args: argparse.Namespace) -> dict[str, Any]:
         "sun_elevation_deg": _sun_elevation(getattr(args, "sun_elevation", None)),
     }
     band_edges(config["bands"])
+    if getattr(args, "sun_elevation", None) and not set(config["models"]) & set(
+        TERRAIN_MODEL_NAMES
+    ):
+        raise BenchSetupError(
+            "--sun-elevation applies to the terrain band: add --terrain (or --models terrain)"
+        )
     if len(set(config["methods"])) != len(config["methods"]):
         raise BenchSetupError("a method is listed twice")
     for key, lo, hi in (("cases", 1, 10_000), ("jobs", 1, 256)):
