@@ -34,12 +34,7 @@ from worker.bench.costs import (
 )
 from worker.bench.records import failure, outcome
 from worker.bench.synth import Case, CaseSpec, make_case
-from worker.bench.terrain import (
-    SUN_ELEVATION_DEG,
-    TERRAIN_MODELS,
-    make_terrain_case,
-    terrain_model_path,
-)
+from worker.bench.terrain import TERRAIN_MODELS, make_terrain_case, terrain_model_path
 from worker.engine.meshes import LoadedModel
 from worker.engine.metrics import rotation_error_deg, speed_score, translation_error
 from worker.engine.posemath import pose_from_schema
@@ -187,9 +182,7 @@ class CaseTask:
     reference: str = "standard"
     #: "offset": from the case's initial guess; "truth": from the true pose (the drift).
     starts: tuple[str, ...] = ("offset",)
-    #: Terrain cases: the range the sun's elevation above the horizon is drawn from, degrees.
-    sun_elevation_deg: tuple[float, float] = SUN_ELEVATION_DEG
-
+    sun_elevation_deg: tuple[float, float] | None = None  # terrain: sun elevation LO, HI, °
     #: Whether the case id names its size (a suite of several sizes).
     sized: bool = False
 
@@ -225,12 +218,8 @@ def build_case(task: CaseTask, model: LoadedModel) -> tuple[Case, int]:
     )
     camera, spec = bench_camera(task.width_px, task.height_px), CaseSpec(rot_deg, frac)
     if task.reference == "terrain":
-        return (
-            make_terrain_case(
-                model, camera, spec, ref_seed, sun_elevation_deg=task.sun_elevation_deg
-            ),
-            est_seed,
-        )
+        sun = task.sun_elevation_deg
+        return make_terrain_case(model, camera, spec, ref_seed, sun_elevation_deg=sun), est_seed
     return make_case(model, camera, spec, ref_seed, reference=task.reference), est_seed
 
 

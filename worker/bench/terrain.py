@@ -98,16 +98,18 @@ def make_terrain_case(
     spec: CaseSpec,
     seed: int,
     options: EstimateOptions | None = None,
-    sun_elevation_deg: tuple[float, float] = SUN_ELEVATION_DEG,
+    sun_elevation_deg: tuple[float, float] | None = None,
 ) -> Case:
-    """One seeded terrain case (reference, request with ground truth, true pose and sun)."""
+    """One seeded terrain case (reference, request with ground truth, true pose and sun), the
+    sun's elevation drawn from ``sun_elevation_deg`` (None: SUN_ELEVATION_DEG)."""
     rng = np.random.default_rng(seed)
     cam = PinholeCamera.from_schema(camera)
     aim = np.array([rng.uniform(-1, 1) * AIM_SPREAD_M, 0.0, rng.uniform(-1, 1) * AIM_SPREAD_M])
     R, t = look_down_pose(
         aim, rng.uniform(*ALTITUDE_M), rng.uniform(*TILT_DEG), rng.uniform(0, 2 * np.pi)
     )
-    sun = sun_above_horizon(R, rng.uniform(*sun_elevation_deg), rng.uniform(0, 2 * np.pi))
+    elevation = rng.uniform(*(sun_elevation_deg or SUN_ELEVATION_DEG))
+    sun = sun_above_horizon(R, elevation, rng.uniform(0, 2 * np.pi))
     cls = TERRAIN_REFERENCE
     sun_true = perturb_direction(sun, cls.sun_error_deg, rng)
     R0, t0 = _initial_guess(R, t, spec, rng)
