@@ -44,9 +44,10 @@ def make_config(args: argparse.Namespace) -> dict[str, Any]:
     preset = SUITES[name]
     robust = bool(args.robustness or args.references)
     cases = ROBUSTNESS_CASES if robust and name == "small" else preset["cases"]
+    models = _models(args.models or preset["models"], getattr(args, "terrain", False))
     config = {
         "suite": f"robustness-{name}" if robust else name,
-        "models": _models(args.models or preset["models"], getattr(args, "terrain", False)),
+        "models": models,
         "methods": [parse_method(m).label for m in args.methods],
         "bands": [ROBUSTNESS_BAND[1]] if robust else args.bands,
         "references": _references(args.references) if robust else ["standard"],
@@ -57,15 +58,9 @@ def make_config(args: argparse.Namespace) -> dict[str, Any]:
         "offsets": args.offsets,
         "jobs": args.jobs,
         "save_cases": args.save_cases,
-        "sun_elevation_deg": _sun_elevation(getattr(args, "sun_elevation", None)),
+        "sun_elevation_deg": _sun_elevation(getattr(args, "sun_elevation", None), models),
     }
     band_edges(config["bands"])
-    if getattr(args, "sun_elevation", None) and not set(config["models"]) & set(
-        TERRAIN_MODEL_NAMES
-    ):
-        raise BenchSetupError(
-            "--sun-elevation applies to the terrain band: add --terrain (or --models terrain)"
-        )
     if len(set(config["methods"])) != len(config["methods"]):
         raise BenchSetupError("a method is listed twice")
     for key, lo, hi in (("cases", 1, 10_000), ("jobs", 1, 256)):
@@ -84,13 +79,18 @@ def _models(names: list[str], terrain: bool) -> list[str]:
     return names + [m for m in TERRAIN_MODEL_NAMES if terrain and m not in names]
 
 
-def _sun_elevation(values: list[float] | None) -> list[float]:
-    """The terrain band's sun elevation range, degrees: LO,HI with 0 < LO ≤ HI < 90."""
+def _sun_elevation(values: list[float] | None, models: list[str]) -> list[float]:
+    """The terrain band's sun elevation range, degrees: LO,HI with 0 < LO ≤ HI < 90, asked for
+    only with a terrain model among ``models``."""
     from worker.bench.cases import BenchSetupError
     from worker.bench.terrain import SUN_ELEVATION_DEG
 
     if values is None:
         return list(SUN_ELEVATION_DEG)
+    if not set(models) & set(TERRAIN_MODEL_NAMES):
+        raise BenchSetupError(
+            "--sun-elevation applies to the terrain band: add --terrain (or --models terrain)"
+        )
     if len(values) != 2 or not 0.0 < values[0] <= values[1] < 90.0:
         raise BenchSetupError(
             f"--sun-elevation must be LO,HI degrees with 0 < LO <= HI < 90, got {values}"

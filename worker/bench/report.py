@@ -196,15 +196,15 @@ def robust_row(method: str, s: Stats) -> str:
 def terrain_tables(summary: dict[str, Any], config: dict[str, Any]) -> str:
     """A table per terrain model (the tuned generator, the held-out one), rows = methods."""
     from worker.bench.config import TERRAIN_BAND
-    from worker.bench.terrain import SUN_ELEVATION_DEG, TERRAIN_MODELS, TERRAIN_REFERENCE
+    from worker.bench.terrain import TERRAIN_MODELS, TERRAIN_REFERENCE
 
     lo, hi = TERRAIN_BAND
-    sun_lo, sun_hi = config.get("sun_elevation_deg", SUN_ELEVATION_DEG)
+    sun_lo, sun_hi = config["sun_elevation_deg"]
     parts = [
         "\n### Terrain band: a cratered heightfield filling the frame\n\n"
-        f"Camera 550–700 m above the ground, tilted 15–30° from the nadir; sun {sun_lo:g}–"
-        f"{sun_hi:g}° above the horizon; offsets in ({lo:g}, "
-        f"{hi:g}]° and % of range; references: {TERRAIN_REFERENCE.description}. Each estimate "
+        "Camera 550–700 m above the ground, tilted 15–30° from the nadir; sun "
+        f"{sun_lo:g}–{sun_hi:g}° above the horizon; offsets in ({lo:g}, {hi:g}]° and % of range; "
+        f"references: {TERRAIN_REFERENCE.description}. Each estimate "
         "also runs from the true pose (drift). `terrain` is the generator the estimator was "
         "tuned on; `terrain-ridged` (ridged relief) was held out.\n"
     ]
