@@ -244,6 +244,8 @@ def test_the_list_refreshes_while_jobs_run_and_a_failure_is_told_in_words(
             "data-status", status, timeout=ESTIMATE_TIMEOUT_S * 1000
         )
     page.select_option("#status-filter", "failed")
+    # the filter empties the list and fetches it again: wait for the fetch, not the empty list
+    expect(page.locator(f'tr[data-id="{failing}"]')).to_be_visible()
     expect(page.locator(f'tr[data-id="{quick}"]')).to_have_count(0)
     statuses = page.locator("#jobs tr").evaluate_all("rows => rows.map(r => r.dataset.status)")
     assert statuses and set(statuses) == {"failed"}
