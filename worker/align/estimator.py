@@ -17,6 +17,7 @@ import numpy as np
 
 from schemas.estimate import Covariance, Errors, EstimateRequest, EstimateResult, StopReason
 from schemas.options import EstimateOptions
+from worker.align import sunsearch
 from worker.align.coarse import (
     COARSE_HANDOVER_STEP,
     COARSE_MAX_ITERATIONS,
@@ -170,6 +171,9 @@ def _run_pipeline(session: Session, renderer_for: RendererFor, plan: LevelPlan) 
             return pnp_reason or "max_iterations"
     if opts.refine_features == "klt" and not coarse_ok:
         run_lm_stage(session, "matches", "coarse", handover_step=COARSE_HANDOVER_STEP)
+    if opts.fit_sun and opts.refine_features != "none":
+        # over a frame-filling scene at a low sun, what is lit says where the sun is
+        sunsearch.search_sun(session)
     # the coarse stage's last render (of the whole image), to place the refinement's window
     window_from = session.current if session.current is not None else session.current_view()
     session.stage_spp = None  # the refinement renders with options.spp

@@ -1,0 +1,103 @@
+"""A search for the sun by the pattern of what it lights, for scenes that fill the frame.
+
+Over terrain at a low sun most of the image is cast shadow, and which ground is lit moves far
+with a sun a few degrees off: at 5–10° above the horizon a 3° error lights ground the reference
+shows dark and darkens ground it shows lit. The features then find little in common between the
+render and the reference, and the refinement's sun fit (:mod:`worker.align.sunfit`), which
+measures the sun through the features, has nothing to work with. The lit pattern itself is
+geometry (where shadows fall), so it is compared directly: at the coarse stage's pose, renders
+with the sun tilted are thresholded into lit and dark, the reference into the same share of lit
+pixels by rank (any exposure, gamma or reflectance law keeps the order of the levels that
+matters: lit above shadow), and a compass search over the tilt maximises the correlation of the
+two (slightly blurred) masks. The refinement's sun fit starts from the result.
+
+Measured on the bench's terrain cases (sun 3° off): at a 4–10° sun the search brought it within
+0.16–0.6° of the true one; the worst fractal case at a 5–15° sun went from 0.14° to 0.04°.
+"""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+from numpy.typing import NDArray
+
+from worker.align.session import Session
+from worker.align.sunfit import SunTilt
+
+Array = NDArray[np.float64]
+
+#: Compass steps of the tilt, degrees (each tried along ±e1, ±e2 until none improves).
+STEPS_DEG = (2.0, 1.0, 0.5)
+#: Most renders the search may use.
+MAX_RENDERS = 28
+#: Gaussian σ (px) of the masks before they are compared (a pose a pixel off still matches).
+MASK_BLUR_PX = 2.0
+#: Least share of the image the model must cover (at the pose) for the search to run: a target
+#: on the sky is left to the features' sun fit.
+MIN_COVERAGE = 0.95
+#: Least share of the render on the dark side of its lit/dark split for the search to run (a
+#: render with hardly any shadow has no pattern to compare; terrain at a 25–45° sun mostly
+#: passes, and there the search moved no estimate by more than 0.002°).
+MIN_SHADOW_FRACTION = 0.25
+#: Smallest gain of the correlation that moves the sun.
+MIN_GAIN = 0.01
+
+
+def lit_mask(grey: Array) -> tuple[NDArray[np.bool_], float]:
+    """The lit pixels of a (noise-free) render by Otsu's threshold, and their share."""
+    u8 = np.clip(grey / max(float(grey.max()), 1e-6) * 255.0, 0, 255).astype(np.uint8)
+    level, _ = cv2.threshold(u8, 0, 255, cv2.THRESH_BINARY + cv2.THRESH_OTSU)
+    mask = u8 > level
+    return mask, float(mask.mean())
+
+
+def pattern_score(render_grey: Array, ref_smooth: Array) -> float:
+    """Correlation of the render's lit mask with the reference's brightest pixels of the
+    same share (blurred by MASK_BLUR_PX)."""
+    mask, lit = lit_mask(render_grey)
+    if not 0.0 < lit < 1.0:
+        return -1.0
+    ref_mask = ref_smooth > np.quantile(ref_smooth, 1.0 - lit)
+    a = cv2.GaussianBlur(mask.astype(np.float32), (0, 0), MASK_BLUR_PX).ravel()
+    b = cv2.GaussianBlur(ref_mask.astype(np.float32), (0, 0), MASK_BLUR_PX).ravel()
+    a, b = a - a.mean(), b - b.mean()
+    return float(a @ b / max(np.sqrt((a @ a) * (b @ b)), 1e-12))
+
+
+def search_sun(session: Session) -> bool:
+    """Tilt the renderer's sun to the one whose lit pattern best matches the reference's, at
+    the session's pose and level; returns whether it moved. Runs only for a scene that fills
+    the frame (MIN_COVERAGE) and whose render at the current sun is at least
+    MIN_SHADOW_FRACTION in shadow."""
+    if session.renderer.coverage(session.R, session.t) < MIN_COVERAGE:
+        return False
+    view = session.current_view()
+    if view.window is not None or lit_mask(view.grey)[1] > 1.0 - MIN_SHADOW_FRACTION:
+        return False
+    ref = cv2.GaussianBlur(session.ref_grey.astype(np.float32), (0, 0), 1.0)
+    if ref.shape != view.grey.shape:
+        return False
+    sun = SunTilt(session)
+    start = sun.ab.copy()
+    best_ab, best = start, pattern_score(view.grey, ref)
+    first = best
+    renders = 0
+    for step_deg in STEPS_DEG:
+        step = np.tan(np.radians(step_deg))
+        moved = True
+        while moved and renders < MAX_RENDERS:
+            moved = False
+            centre = best_ab
+            for d in ((step, 0.0), (-step, 0.0), (0.0, step), (0.0, -step)):
+                ab = sun.clip(centre + np.array(d))
+                sun.set(ab)
+                score = pattern_score(session.render_view(session.R, session.t).grey, ref)
+                renders += 1
+                if score > best:
+                    best_ab, best, moved = ab, score, True
+    if best - first < MIN_GAIN:
+        sun.set(start)
+        return False
+    sun.set(best_ab)
+    session.current = None  # rendered with the old sun
+    return True
