@@ -12,22 +12,16 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from schemas.camera import Camera
 from worker.align import sunsearch
 from worker.align.session import Session
 from worker.align.sunsearch import lit_mask, pattern_score
+from worker.bench.cases import bench_camera
 from worker.bench.synth import Case, CaseSpec, pose_json
 from worker.bench.terrain import make_terrain_case
 from worker.demo.terrain import write_demo_terrain
 from worker.engine.meshes import LoadedModel, load_model
 
 SIDE_PX = 192
-
-
-def _camera() -> Camera:
-    f = 0.5 * SIDE_PX / np.tan(np.radians(20.0))
-    c = (SIDE_PX - 1) / 2
-    return Camera(width=SIDE_PX, height=SIDE_PX, fx=f, fy=f, cx=c, cy=c)
 
 
 @pytest.fixture(scope="module")
@@ -73,7 +67,9 @@ def _searched_suns(
 def test_a_low_sun_is_found_from_the_lit_pattern(
     terrain: LoadedModel, monkeypatch: pytest.MonkeyPatch
 ) -> None:
-    case = make_terrain_case(terrain, _camera(), CaseSpec(0.0, 0.0), 11, sun_elevation_deg=(6, 9))
+    case = make_terrain_case(
+        terrain, bench_camera(SIDE_PX), CaseSpec(0.0, 0.0), 11, sun_elevation_deg=(6, 9)
+    )
     found = _searched_suns(terrain, case, monkeypatch)
     before, after, moved, renders = found[0]
     assert before == pytest.approx(3.0, abs=0.01)  # the bench's request is 3° off
@@ -86,7 +82,6 @@ def test_a_target_on_the_sky_is_left_to_the_features(
 ) -> None:
     """A spacecraft does not fill the frame: the search returns at once, without a render (the
     refinement's feature-based sun fit is what moves its sun)."""
-    from worker.bench.cases import bench_camera
     from worker.bench.synth import make_case
     from worker.demo.satellite import demo_satellite_path
 

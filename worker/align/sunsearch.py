@@ -23,12 +23,14 @@ from numpy.typing import NDArray
 
 from worker.align.session import Session
 from worker.align.sunfit import SunTilt
+from worker.engine.photometry import zncc
 
 Array = NDArray[np.float64]
 
 #: Compass steps of the tilt, degrees (each tried along ±e1, ±e2 until none improves).
 STEPS_DEG = (2.0, 1.0, 0.5)
-#: Most renders the search may use.
+#: Renders after which the search stops (it finishes the four tries around a centre, so it
+#: may make up to three more).
 MAX_RENDERS = 28
 #: Gaussian σ (px) of the masks before they are compared (a pose a pixel off still matches).
 MASK_BLUR_PX = 2.0
@@ -58,10 +60,9 @@ def pattern_score(render_grey: Array, ref_smooth: Array) -> float:
     if not 0.0 < lit < 1.0:
         return -1.0
     ref_mask = ref_smooth > np.quantile(ref_smooth, 1.0 - lit)
-    a = cv2.GaussianBlur(mask.astype(np.float32), (0, 0), MASK_BLUR_PX).ravel()
-    b = cv2.GaussianBlur(ref_mask.astype(np.float32), (0, 0), MASK_BLUR_PX).ravel()
-    a, b = a - a.mean(), b - b.mean()
-    return float(a @ b / max(np.sqrt((a @ a) * (b @ b)), 1e-12))
+    a = cv2.GaussianBlur(mask.astype(np.float32), (0, 0), MASK_BLUR_PX)
+    b = cv2.GaussianBlur(ref_mask.astype(np.float32), (0, 0), MASK_BLUR_PX)
+    return zncc(a, b)
 
 
 def search_sun(session: Session) -> bool:

@@ -149,7 +149,13 @@ def alignment_score(reference_grey: FloatImage, render_grey: FloatImage) -> floa
     mask = (content_mask(to_u8(a, 1.0)) > 0) | (content_mask(to_u8(b, 1.0)) > 0)
     if mask.sum() < 16:
         return -1.0
-    a, b = a[mask] - a[mask].mean(), b[mask] - b[mask].mean()
+    return zncc(a[mask], b[mask])
+
+
+def zncc(a: NDArray[np.floating], b: NDArray[np.floating]) -> float:
+    """Zero-mean normalised cross-correlation of two arrays of one shape (1: equal up to a
+    gain and an offset)."""
+    a, b = a - a.mean(), b - b.mean()
     return float(np.sum(a * b) / max(np.sqrt(np.sum(a * a) * np.sum(b * b)), 1e-12))
 
 
