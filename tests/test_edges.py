@@ -66,6 +66,18 @@ def test_an_edge_that_is_not_there_is_not_trusted() -> None:
     assert not normal_shift(half_plane(0.0), far, pts, normals)[1].any()
 
 
+def test_an_edge_of_a_small_share_of_the_contrast_is_not_trusted() -> None:
+    # A crest lit in the render and not in the reference leaves there, at most, a ripple of
+    # the same shape: its profile correlates, but a shift measured on it stays where it
+    # started. Half the contrast is still an edge (another reflectance law, exposure).
+    pts, normals = edge_points(30.0)
+    template = half_plane(30.0)
+    for share, trusted in ((0.03, False), (0.5, True)):
+        target = 0.5 + share * (half_plane(30.0, (0.3, 0.0)) - 0.5)
+        s, ok = normal_shift(template, target.astype(np.float32), pts, normals)
+        assert ok.all() == trusted and ok.any() == trusted, share
+
+
 def _sides() -> list[tuple[np.ndarray, np.ndarray]]:
     """The sides (start, end) of RECTANGLES."""
     sides = []

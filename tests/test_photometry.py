@@ -38,6 +38,23 @@ def test_the_tone_curve_inverts_a_known_gamma_and_exposure() -> None:
     assert np.all(np.diff(curve[0]) > 0) and np.all(np.diff(curve[1]) >= 0)  # monotone
 
 
+def test_the_tone_curve_reaches_a_lit_ground_that_has_no_flat_pixels() -> None:
+    # Terrain at a low sun: three quarters of the frame in shadow lit by the ambient light
+    # (smooth, dim), the lit ground in patches whose every pixel lies on a slope. The flat
+    # pixels the curve is fitted on are then all shadow; the lit levels must still map right.
+    y, x = np.mgrid[0:128, 0:128].astype(np.float64)
+    shadow = 0.04 + 0.01 * np.sin(x / 17.0) * np.cos(y / 23.0)
+    lit_ground = 0.35 + 0.25 * np.sin(x / 1.3) * np.sin(y / 1.7)
+    patches = (np.sin(x / 9.0) + np.sin(y / 11.0)) > 1.0
+    render = to_display(np.where(patches, lit_ground, shadow)).astype(np.float32)
+    reference = np.clip((0.7 * render) ** 1.8, 0, 1).astype(np.float32)
+    curve = fit_tone_curve(reference, render)
+    mapped = apply_tone_curve(reference, curve)
+    assert 0.15 < patches.mean() < 0.35
+    assert np.median(np.abs(mapped - render)[patches]) < 0.03
+    assert np.all(np.diff(curve[0]) > 0) and np.all(np.diff(curve[1]) >= 0)  # monotone
+
+
 def test_the_reference_is_brought_onto_the_renders_scale() -> None:
     linear = scene()
     reference = np.clip(0.7 * linear, 0, 1) ** (1 / 2.2)  # gamma 2.2 instead of sRGB

@@ -26,6 +26,11 @@ SCORE_SMOOTH_PX = 1.5
 #: Tone-curve fit: quantile bins and the smoothing applied before comparing pixels, px.
 TONE_BINS = 48
 TONE_SMOOTH_PX = 1.5
+#: Share of the render's pixels above the curve's last knot beyond which knots are added there
+#: by rank (see _rank_knots_above), how many, and the highest quantile they reach.
+TONE_TOP_SHARE = 0.05
+TONE_TOP_KNOTS = 8
+TONE_TOP_QUANTILE = 0.999
 #: Dark pixels the tone curve needs to anchor its foot on them (a target filling the frame
 #: with no sky or shadow leaves none: the curve is then fitted on the lit levels alone).
 MIN_SKY_PX = 50
@@ -85,11 +90,38 @@ def fit_tone_curve(
         if sel.sum() >= 10:
             ref_level.append(float(np.median(av[sel])))
             render_level.append(float(np.median(bv[sel])))
+    _rank_knots_above(a[lit], b[lit], ref_level, render_level)
     if len(ref_level) < 2:
         return np.array([0.0, 1.0]), np.array([0.0, 1.0])
     x = np.maximum.accumulate(np.asarray(ref_level))
     x = x + 1e-6 * np.arange(len(x))  # strictly increasing for interpolation
     return x, np.maximum.accumulate(np.asarray(render_level))
+
+
+def _rank_knots_above(
+    ref: NDArray[np.float32],
+    render: NDArray[np.float32],
+    ref_level: list[float],
+    render_level: list[float],
+) -> None:
+    """Extend the knots (in place) by rank above the flat pixels' range when more than
+    TONE_TOP_SHARE of the render's pixels lie above it.
+
+    The flat pixels can miss the bright levels: over terrain at a low sun nearly all of them
+    are shadow lit by the ambient light, and the lit ground (a quarter of the image, every
+    pixel of it on a slope or an edge) has too few to fill a bin. The curve then ends at a
+    shadow level and maps the whole lit ground onto it: the reference went flat and not one
+    feature matched. Above the last knot the two images are matched by rank instead (the
+    same share of their pixels above each level), which needs them only roughly aligned."""
+    top = render_level[-1] if render_level else 0.0
+    share = float(np.mean(render > top))
+    if share <= TONE_TOP_SHARE:
+        return
+    for q in np.linspace(1.0 - share, TONE_TOP_QUANTILE, TONE_TOP_KNOTS + 1)[1:]:
+        x, y = float(np.quantile(ref, q)), float(np.quantile(render, q))
+        if y > render_level[-1] and x > ref_level[-1]:
+            ref_level.append(x)
+            render_level.append(y)
 
 
 def reference_on_render_scale(reference: FloatImage, render_linear: FloatImage) -> FloatImage:
