@@ -9,11 +9,13 @@ exposure, gamma, noise). A spy records the sun before and after the search.
 
 from __future__ import annotations
 
+from collections.abc import Callable
+
 import numpy as np
 import pytest
 
 from worker.align import sunsearch
-from worker.align.session import Session
+from worker.align.session import RenderedView, Session
 from worker.align.sunsearch import lit_mask, pattern_score
 from worker.bench.cases import bench_camera
 from worker.bench.synth import Case, CaseSpec, pose_json
@@ -75,6 +77,49 @@ def test_a_low_sun_is_found_from_the_lit_pattern(
     assert before == pytest.approx(3.0, abs=0.01)  # the bench's request is 3° off
     assert moved and after < 1.0
     assert renders <= sunsearch.MAX_RENDERS + 4
+
+
+def test_a_sun_below_the_horizon_at_the_initial_pose_is_tilted_until_it_lights(
+    terrain: LoadedModel, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """The request's sun 6° below the ground's mean plane (a pose a few degrees off can put a
+    low sun below the horizon; 1–4° below, this DEM's slopes still catch it): the estimate
+    does not fail as unlit; the sun is tilted by at most the largest of LIGHT_UP_TILTS_DEG
+    and the render then shows sunlit ground."""
+    from worker.align.estimator import estimate
+    from worker.bench.terrain import UP
+    from worker.engine.exceptions import UnlitRenderError
+
+    case = make_terrain_case(
+        terrain, bench_camera(SIDE_PX), CaseSpec(0.0, 0.0), 11, sun_elevation_deg=(6, 9)
+    )
+    up = case.R_true @ UP
+    level = case.sun_true - (case.sun_true @ up) * up
+    e = np.radians(-6.0)
+    below = np.cos(e) * level / np.linalg.norm(level) + np.sin(e) * up
+    lighting = case.request.lighting.model_copy(update={"sun_direction": list(map(float, below))})
+    request = case.request.model_copy(
+        update={"lighting": lighting, "initial_pose": pose_json(case.R_true, case.t_true)}
+    )
+    image = case.reference.astype(np.float32) / 255.0
+    seen: list[tuple[bool, float, bool]] = []
+    light_up = sunsearch.light_up
+
+    def spy(session: Session, lit: Callable[[RenderedView], bool]) -> bool:
+        tilted = light_up(session, lit)
+        sun = np.array(session.renderer.lighting.sun_direction)
+        seen.append((tilted, _angle_deg(sun, below), lit(session.current_view())))
+        raise _Searched  # the coarse stage and the rest are not under test
+
+    monkeypatch.setattr(sunsearch, "light_up", spy)
+    with pytest.raises(_Searched):
+        estimate(terrain, image, request)
+    tilted, tilt, lit = seen[0]
+    assert tilted and lit and 1.0 < tilt <= max(sunsearch.LIGHT_UP_TILTS_DEG) + 0.01
+    # without the tilt (the sun fit off: the request's sun is to be used as it is) it is unlit
+    fixed = request.options.model_copy(update={"fit_sun": False})
+    with pytest.raises(UnlitRenderError):
+        estimate(terrain, image, request.model_copy(update={"options": fixed}))
 
 
 def test_a_target_on_the_sky_is_left_to_the_features(

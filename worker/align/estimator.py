@@ -151,6 +151,9 @@ def _run_pipeline(session: Session, renderer_for: RendererFor, plan: LevelPlan) 
         session.set_level(plan.coarse)
     if opts.coarse == "pnp":
         _coarse_spp(session)
+    if opts.fit_sun and opts.refine_features != "none":
+        # over a frame-filling scene the pose's error can put a low sun below the horizon
+        sunsearch.light_up(session, lambda view: is_lit(view, session.renderer.lighting))
     check_lit(session.current_view(), session.renderer.lighting)
     if opts.coarse == "pnp":
         run_moment_alignment(session)
@@ -186,6 +189,13 @@ def _coarse_spp(session: Session) -> None:
     pass at a reduced level at spp·level² left a textured model's estimates further off)."""
     opts = session.options
     session.stage_spp = opts.coarse_spp or level_spp(opts.spp, session.level, opts.perturbation_spp)
+
+
+def is_lit(view: RenderedView, lighting: LightingSpec) -> bool:
+    """Whether anything in the render is brighter than a white surface lit by the ambient
+    light alone (UNLIT_FACTOR of it): see check_lit."""
+    top = float(np.percentile(view.linear[..., :3].mean(axis=2), 99.9))
+    return top > UNLIT_FACTOR * lighting.ambient + UNLIT_FLOOR
 
 
 def check_lit(view: RenderedView, lighting: LightingSpec) -> None:

@@ -17,11 +17,13 @@ Measured on the bench's terrain cases (sun 3° off): at a 4–10° sun the searc
 
 from __future__ import annotations
 
+from collections.abc import Callable
+
 import cv2
 import numpy as np
 from numpy.typing import NDArray
 
-from worker.align.session import Session
+from worker.align.session import RenderedView, Session
 from worker.align.sunfit import SunTilt
 from worker.engine.photometry import zncc
 
@@ -43,6 +45,9 @@ MIN_COVERAGE = 0.95
 MIN_SHADOW_FRACTION = 0.25
 #: Smallest gain of the correlation that moves the sun.
 MIN_GAIN = 0.01
+#: Tilts of the sun from the request's (degrees; eight directions each, the smallest that
+#: lights anything wins) tried when the render at the initial pose shows no sunlit ground.
+LIGHT_UP_TILTS_DEG = (2.0, 4.0, 6.0)
 
 
 def lit_mask(grey: Array) -> tuple[NDArray[np.bool_], float]:
@@ -102,3 +107,41 @@ def search_sun(session: Session) -> bool:
     sun.set(best_ab)
     session.current = None  # rendered with the old sun
     return True
+
+
+def light_up(session: Session, lit: Callable[[RenderedView], bool]) -> bool:
+    """Over a scene that fills the frame, make the render at the initial pose sunlit when it
+    is not; returns whether the sun was tilted for that.
+
+    The sun is given in the camera frame, so an initial pose a few degrees off tilts the
+    ground by as much against it: a sun 3° above the horizon can be below it at the initial
+    pose (one of 14 offset starts in two bench runs of the terrain band at a 3–12° sun), and
+    the estimate would fail as unlit. The sun is tilted by the smallest of LIGHT_UP_TILTS_DEG
+    whose render ``lit`` accepts, in the direction whose lit pattern best matches the
+    reference's (pattern_score); the coarse stage, the search and the refinement's sun fit go
+    on from there. A target on the sky, or a render already lit, is left alone (no render
+    made)."""
+    if lit(session.current_view()) or session.renderer.coverage(session.R, session.t) < (
+        MIN_COVERAGE
+    ):
+        return False
+    ref = cv2.GaussianBlur(session.ref_grey.astype(np.float32), (0, 0), 1.0)
+    sun = SunTilt(session)
+    start = sun.ab.copy()
+    for tilt_deg in LIGHT_UP_TILTS_DEG:
+        r = np.tan(np.radians(tilt_deg))
+        best: tuple[float, Array] | None = None
+        for angle in np.arange(8) * (np.pi / 4):
+            ab = sun.clip(start + r * np.array([np.cos(angle), np.sin(angle)]))
+            sun.set(ab)
+            view = session.render_view(session.R, session.t)
+            if lit(view) and view.grey.shape == ref.shape:
+                score = pattern_score(view.grey, ref)
+                if best is None or score > best[0]:
+                    best = (score, ab)
+        if best is not None:
+            sun.set(best[1])
+            session.current = None  # rendered with the old sun
+            return True
+    sun.set(start)
+    return False
