@@ -26,9 +26,11 @@ SCORE_SMOOTH_PX = 1.5
 #: Tone-curve fit: quantile bins and the smoothing applied before comparing pixels, px.
 TONE_BINS = 48
 TONE_SMOOTH_PX = 1.5
-#: Share of the render's pixels above the curve's last knot beyond which knots are added there
-#: by rank (see _rank_knots_above), how many, and the highest quantile they reach.
-TONE_TOP_SHARE = 0.05
+#: Knots are added by rank above the curve's last one (see _rank_knots_above) when more than
+#: TONE_TOP_SHARE of the render's pixels lie above it and its TONE_TOP_QUANTILE level is over
+#: TONE_TOP_RATIO × the last knot's; TONE_TOP_KNOTS of them, up to that quantile.
+TONE_TOP_SHARE = 0.01
+TONE_TOP_RATIO = 2.0
 TONE_TOP_KNOTS = 8
 TONE_TOP_QUANTILE = 0.999
 #: Dark pixels the tone curve needs to anchor its foot on them (a target filling the frame
@@ -83,14 +85,16 @@ def fit_tone_curve(
     edges = np.unique(np.quantile(bv, np.linspace(0.0, 1.0, bins + 1)))
     idx = np.clip(np.searchsorted(edges, bv, side="right") - 1, 0, len(edges) - 2)
     ref_level, render_level = [], []
-    if (~lit).sum() >= MIN_SKY_PX:  # the dark sky (or shadow) anchors the curve's foot
+    anchored = (~lit).sum() >= MIN_SKY_PX
+    if anchored:  # the dark sky (or shadow) anchors the curve's foot
         ref_level, render_level = [float(np.median(a[~lit]))], [0.0]
     for k in range(len(edges) - 1):
         sel = idx == k
         if sel.sum() >= 10:
             ref_level.append(float(np.median(av[sel])))
             render_level.append(float(np.median(bv[sel])))
-    _rank_knots_above(a[lit], b[lit], ref_level, render_level)
+    if not anchored:  # a scene that fills the frame (see _rank_knots_above)
+        _rank_knots_above(a[lit], b[lit], ref_level, render_level)
     if len(ref_level) < 2:
         return np.array([0.0, 1.0]), np.array([0.0, 1.0])
     x = np.maximum.accumulate(np.asarray(ref_level))
@@ -104,18 +108,21 @@ def _rank_knots_above(
     ref_level: list[float],
     render_level: list[float],
 ) -> None:
-    """Extend the knots (in place) by rank above the flat pixels' range when more than
-    TONE_TOP_SHARE of the render's pixels lie above it.
+    """Extend the knots (in place) by rank above the flat pixels' range when it leaves out
+    much of the render's (TONE_TOP_SHARE of its pixels, up to TONE_TOP_RATIO × its level).
 
     The flat pixels can miss the bright levels: over terrain at a low sun nearly all of them
     are shadow lit by the ambient light, and the lit ground (a quarter of the image, every
     pixel of it on a slope or an edge) has too few to fill a bin. The curve then ends at a
     shadow level and maps the whole lit ground onto it: the reference went flat and not one
     feature matched. Above the last knot the two images are matched by rank instead (the
-    same share of their pixels above each level), which needs them only roughly aligned."""
+    same share of their pixels above each level), which needs them only roughly aligned.
+    Only for a scene with no dark sky or shadow to anchor the curve's foot: a target on the
+    sky keeps the knots as measured (a small one's curve can end below its brightest levels
+    too, and rank knots there changed the tracker's sequences; measured 2026-12-03)."""
     top = render_level[-1] if render_level else 0.0
     share = float(np.mean(render > top))
-    if share <= TONE_TOP_SHARE:
+    if share <= TONE_TOP_SHARE or np.quantile(render, TONE_TOP_QUANTILE) <= TONE_TOP_RATIO * top:
         return
     for q in np.linspace(1.0 - share, TONE_TOP_QUANTILE, TONE_TOP_KNOTS + 1)[1:]:
         x, y = float(np.quantile(ref, q)), float(np.quantile(render, q))
