@@ -55,6 +55,16 @@ def test_the_tone_curve_reaches_a_lit_ground_that_has_no_flat_pixels() -> None:
     assert np.all(np.diff(curve[0]) > 0) and np.all(np.diff(curve[1]) >= 0)  # monotone
 
 
+def test_a_frame_too_small_to_fill_a_bin_still_gets_a_monotone_curve() -> None:
+    # 10 × 10 px, all lit: about 50 flat pixels over 48 bins leave no bin its 10 pixels, so
+    # the curve is made of the rank knots alone (or the identity).
+    rng = np.random.default_rng(1)
+    render = (0.2 + 0.6 * rng.random((10, 10))).astype(np.float32)
+    curve = fit_tone_curve((0.7 * render) ** 1.8, render)
+    assert len(curve[0]) >= 2
+    assert np.all(np.diff(curve[0]) > 0) and np.all(np.diff(curve[1]) >= 0)
+
+
 def test_the_reference_is_brought_onto_the_renders_scale() -> None:
     linear = scene()
     reference = np.clip(0.7 * linear, 0, 1) ** (1 / 2.2)  # gamma 2.2 instead of sRGB

@@ -124,11 +124,13 @@ def _rank_knots_above(
     share = float(np.mean(render > top))
     if share <= TONE_TOP_SHARE or np.quantile(render, TONE_TOP_QUANTILE) <= TONE_TOP_RATIO * top:
         return
+    last_x = ref_level[-1] if ref_level else -np.inf  # no bin may have filled
     for q in np.linspace(1.0 - share, TONE_TOP_QUANTILE, TONE_TOP_KNOTS + 1)[1:]:
         x, y = float(np.quantile(ref, q)), float(np.quantile(render, q))
-        if y > render_level[-1] and x > ref_level[-1]:
+        if y > top and x > last_x:
             ref_level.append(x)
             render_level.append(y)
+            top, last_x = y, x
 
 
 def reference_on_render_scale(reference: FloatImage, render_linear: FloatImage) -> FloatImage:
