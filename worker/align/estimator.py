@@ -151,7 +151,8 @@ def _run_pipeline(session: Session, renderer_for: RendererFor, plan: LevelPlan) 
         session.set_level(plan.coarse)
     if opts.coarse == "pnp":
         _coarse_spp(session)
-    if opts.fit_sun and opts.refine_features != "none":
+    fit_sun = opts.fit_sun and opts.refine_features != "none"
+    if fit_sun:
         # over a frame-filling scene the pose's error can put a low sun below the horizon
         sunsearch.light_up(session, lambda view: is_lit(view, session.renderer.lighting))
     check_lit(session.current_view(), session.renderer.lighting)
@@ -174,7 +175,7 @@ def _run_pipeline(session: Session, renderer_for: RendererFor, plan: LevelPlan) 
             return pnp_reason or "max_iterations"
     if opts.refine_features == "klt" and not coarse_ok:
         run_lm_stage(session, "matches", "coarse", handover_step=COARSE_HANDOVER_STEP)
-    if opts.fit_sun and opts.refine_features != "none":
+    if fit_sun:
         # over a frame-filling scene at a low sun, what is lit says where the sun is
         sunsearch.search_sun(session)
     # the coarse stage's last render (of the whole image), to place the refinement's window
@@ -191,20 +192,23 @@ def _coarse_spp(session: Session) -> None:
     session.stage_spp = opts.coarse_spp or level_spp(opts.spp, session.level, opts.perturbation_spp)
 
 
+def _brightest(view: RenderedView) -> float:
+    """The render's brightest level (99.9th percentile of its linear grey)."""
+    return float(np.percentile(view.linear[..., :3].mean(axis=2), 99.9))
+
+
 def is_lit(view: RenderedView, lighting: LightingSpec) -> bool:
     """Whether anything in the render is brighter than a white surface lit by the ambient
     light alone (UNLIT_FACTOR of it): see check_lit."""
-    top = float(np.percentile(view.linear[..., :3].mean(axis=2), 99.9))
-    return top > UNLIT_FACTOR * lighting.ambient + UNLIT_FLOOR
+    return _brightest(view) > UNLIT_FACTOR * lighting.ambient + UNLIT_FLOOR
 
 
 def check_lit(view: RenderedView, lighting: LightingSpec) -> None:
     """Raise UnlitRenderError when nothing in the render at the initial pose is brighter than a
     white surface lit by the ambient light alone (UNLIT_FACTOR of it): the sun lights nothing
     that is seen, and no feature can be found."""
-    grey = view.linear[..., :3].mean(axis=2)
-    top = float(np.percentile(grey, 99.9))
-    if top <= UNLIT_FACTOR * lighting.ambient + UNLIT_FLOOR:
+    if not is_lit(view, lighting):
+        top = _brightest(view)
         raise UnlitRenderError(
             "the model is in view at the initial pose but the sun lights none of it (brightest "
             f"pixels {top:.4f} of the sun's scale, ambient {lighting.ambient:g}): check "

@@ -70,17 +70,28 @@ def pattern_score(render_grey: Array, ref_smooth: Array) -> float:
     return zncc(a, b)
 
 
+def _fills_frame(session: Session) -> bool:
+    """Whether the model covers at least MIN_COVERAGE of the image at the session's pose."""
+    return session.renderer.coverage(session.R, session.t) >= MIN_COVERAGE
+
+
+def _smoothed_reference(session: Session) -> NDArray[np.float32]:
+    """The reference's grey at the session's level, lightly smoothed (its noise), as
+    pattern_score compares it."""
+    return cv2.GaussianBlur(session.ref_grey.astype(np.float32), (0, 0), 1.0)
+
+
 def search_sun(session: Session) -> bool:
     """Tilt the renderer's sun to the one whose lit pattern best matches the reference's, at
     the session's pose and level; returns whether it moved. Runs only for a scene that fills
     the frame (MIN_COVERAGE) and whose render at the current sun is at least
     MIN_SHADOW_FRACTION in shadow."""
-    if session.renderer.coverage(session.R, session.t) < MIN_COVERAGE:
+    if not _fills_frame(session):
         return False
     view = session.current_view()
     if view.window is not None or lit_mask(view.grey)[1] > 1.0 - MIN_SHADOW_FRACTION:
         return False
-    ref = cv2.GaussianBlur(session.ref_grey.astype(np.float32), (0, 0), 1.0)
+    ref = _smoothed_reference(session)
     if ref.shape != view.grey.shape:
         return False
     sun = SunTilt(session)
@@ -121,11 +132,9 @@ def light_up(session: Session, lit: Callable[[RenderedView], bool]) -> bool:
     reference's (pattern_score); the coarse stage, the search and the refinement's sun fit go
     on from there. A target on the sky, or a render already lit, is left alone (no render
     made)."""
-    if lit(session.current_view()) or session.renderer.coverage(session.R, session.t) < (
-        MIN_COVERAGE
-    ):
+    if lit(session.current_view()) or not _fills_frame(session):
         return False
-    ref = cv2.GaussianBlur(session.ref_grey.astype(np.float32), (0, 0), 1.0)
+    ref = _smoothed_reference(session)
     sun = SunTilt(session)
     start = sun.ab.copy()
     for tilt_deg in LIGHT_UP_TILTS_DEG:
