@@ -183,6 +183,8 @@ class CaseTask:
     #: "offset": from the case's initial guess; "truth": from the true pose (the drift).
     starts: tuple[str, ...] = ("offset",)
     sun_elevation_deg: tuple[float, float] | None = None  # terrain: sun elevation LO, HI, °
+    #: Spacecraft: the target's diameter over the smaller image side (> 1: past the frame).
+    fill: float = 0.6
     #: Whether the case id names its size (a suite of several sizes).
     sized: bool = False
 
@@ -216,7 +218,8 @@ def build_case(task: CaseTask, model: LoadedModel) -> tuple[Case, int]:
     rot_deg, frac = draw_offset(
         task.band_lo, task.band, task.offsets, np.random.default_rng(offset_seed)
     )
-    camera, spec = bench_camera(task.width_px, task.height_px), CaseSpec(rot_deg, frac)
+    camera = bench_camera(task.width_px, task.height_px)
+    spec = CaseSpec(rot_deg, frac, fill=task.fill)
     if task.reference == "terrain":
         sun = task.sun_elevation_deg
         return make_terrain_case(model, camera, spec, ref_seed, sun_elevation_deg=sun), est_seed

@@ -151,6 +151,12 @@ def _add_suite_arguments(parser: argparse.ArgumentParser) -> None:
         "also started at the truth",
     )
     parser.add_argument(
+        "--fill",
+        type=float,
+        help="the spacecraft cases' target diameter over the smaller image side (default 0.6; "
+        "over 1 the target runs past the frame, as at docking range, e.g. 3)",
+    )
+    parser.add_argument(
         "--sun-elevation",
         type=_float_csv,
         help="LO,HI: the terrain band's sun elevation above the horizon, degrees, drawn uniformly "

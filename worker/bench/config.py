@@ -59,6 +59,7 @@ def make_config(args: argparse.Namespace) -> dict[str, Any]:
         "jobs": args.jobs,
         "save_cases": args.save_cases,
         "sun_elevation_deg": _sun_elevation(getattr(args, "sun_elevation", None), models),
+        "fill": _fill(getattr(args, "fill", None)),
     }
     band_edges(config["bands"])
     if len(set(config["methods"])) != len(config["methods"]):
@@ -96,6 +97,19 @@ def _sun_elevation(values: list[float] | None, models: list[str]) -> list[float]
             f"--sun-elevation must be LO,HI degrees with 0 < LO <= HI < 90, got {values}"
         )
     return values
+
+
+def _fill(value: float | None) -> float:
+    """The spacecraft cases' target size: its diameter over the smaller image side (default
+    CaseSpec's 0.6; over 1 the target runs past the frame, as at docking range)."""
+    from worker.bench.cases import BenchSetupError
+    from worker.bench.synth import CaseSpec
+
+    if value is None:
+        return CaseSpec(0.0, 0.0).fill
+    if not 0.05 <= value <= 10.0:
+        raise BenchSetupError(f"--fill must be in 0.05..10 (diameter / image side), got {value:g}")
+    return float(value)
 
 
 def _references(names: list[str] | None) -> list[str]:
@@ -154,6 +168,7 @@ def make_tasks(
             reference=reference,
             starts=plan(name)["starts"],
             sun_elevation_deg=tuple(config["sun_elevation_deg"]),
+            fill=config["fill"],
         )
         for w, h in config["sizes"]
         for name, path in models
@@ -167,7 +182,7 @@ def _case_conditions(config: dict[str, Any]) -> dict[str, Any]:
     from worker.bench.cases import CAMERA_FOV_DEG, bench_camera
     from worker.bench.synth import CaseSpec
 
-    spec = asdict(CaseSpec(0.0, 0.0))
+    spec = asdict(CaseSpec(0.0, 0.0, fill=config["fill"]))
     del spec["offset_deg"], spec["offset_frac"]
     return {
         "cameras": [bench_camera(w, h).model_dump() for w, h in config["sizes"]],

@@ -92,6 +92,17 @@ def model_table(summary: dict[str, Any]) -> str:
     return head + rows
 
 
+def _fill_text(config: dict[str, Any]) -> str:
+    """The spacecraft cases' size when not the default (older bench.json files have none)."""
+    from worker.bench.synth import CaseSpec
+
+    fill = config.get("fill", CaseSpec(0.0, 0.0).fill)
+    if fill == CaseSpec(0.0, 0.0).fill:
+        return ""
+    past = " (past the frame)" if fill > 1 else ""
+    return f"spacecraft {fill:g} × the image side across{past}; "
+
+
 def markdown(summary: dict[str, Any], config: dict[str, Any], env: dict[str, Any]) -> str:
     """The whole bench.md: how it was run, the tables per band and per model, and the
     robustness tables per reference class when the suite had any."""
@@ -104,7 +115,7 @@ def markdown(summary: dict[str, Any], config: dict[str, Any], env: dict[str, Any
         f"Models {', '.join(config['models'])}; {config['cases']} case(s) per model and "
         f"{'class' if summary['by_reference'] else 'band'}; "
         f"{', '.join(f'{w}×{h}' for w, h in config['sizes'])} px; offsets `{config['offsets']}`; "
-        f"seed {config['seed']}.\n\n"
+        f"{_fill_text(config)}seed {config['seed']}.\n\n"
         f"Success: ≤ {SUCCESS_ROTATION_DEG:g}° and ≤ {SUCCESS_TRANSLATION_PCT:g} % of range. "
         "Errors: rotation in degrees, translation in % of range, over all cases (a failed "
         "estimate counts with its initial offset). Iterations, renders and seconds: medians. "
