@@ -41,7 +41,7 @@ from service.routes import (
     session,
     tracks,
 )
-from service.store import Keys
+from service.store import Keys, Queues
 from service.store.blobs import open_blob_store
 from service.store.budget import warn_if_unbounded
 
@@ -102,12 +102,14 @@ async def lifespan(app: FastAPI) -> AsyncIterator[None]:
         **reconnect,
     )
     app.state.blobs = open_blob_store(settings)
-    app.state.store_source = (app.state.redis, Keys(settings.redis_prefix))
+    keys = Keys(settings.redis_prefix)
+    app.state.store_source = (app.state.redis, keys)
+    app.state.queues = Queues(app.state.redis, keys)  # shared by the requests' job stores
     warn_if_unbounded(app.state.redis, "API")
     try:
         yield
     finally:
-        app.state.store_source = None
+        app.state.store_source = app.state.queues = None
         app.state.redis.close()
         await app.state.aredis.aclose()
 

@@ -176,6 +176,23 @@ def create_or_refuse(
         raise
 
 
+def accepted(resource: BaseModel, location: str, replayed: bool = False) -> Response:
+    """The 202 of a submission: the job ``resource`` serialised as FastAPI serialises the
+    route's ``response_model`` (the same bytes), with ``Location`` (and ``Idempotent-Replayed``
+    for an Idempotency-Key's replay).
+
+    Returned as a Response, so FastAPI skips its own pass: for a sync route it validates the
+    returned model once more, in a second thread-pool hop, before serialising it (~0.1 ms of
+    CPU per submission, which a burst of them queues behind). The model is valid already."""
+    response = Response(
+        resource.model_dump_json(by_alias=True), status_code=202, media_type="application/json"
+    )
+    response.headers["Location"] = location
+    if replayed:
+        response.headers["Idempotent-Replayed"] = "true"
+    return response
+
+
 def cancel(jobs: JobStore, record: JobRecord, response: Response) -> JobRecord:
     """Cancel a queued job (200) or ask a running one to stop (202); 409 once it has ended."""
     after = None if record.terminal else jobs.request_cancel(record.id)

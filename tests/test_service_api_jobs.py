@@ -8,6 +8,7 @@ from __future__ import annotations
 import json
 
 import redis
+from fastapi.routing import APIRoute
 from fastapi.testclient import TestClient
 from rq import Queue
 from service_api_helpers import (
@@ -20,6 +21,9 @@ from service_api_helpers import (
     submit,
 )
 
+from schemas.estimate import EstimateResult
+from service.resources import estimate_public
+from service.routes import estimates
 from service.store import JobStore, Leases, Reaper
 
 
@@ -147,3 +151,51 @@ def test_a_queued_job_that_rq_lost_is_enqueued_again(client: TestClient, r: redi
     assert Leases(JobStore(r, KEYS, 60), 30.0).start(job_id, "w", f"{job_id}-1") is None  # stale
     assert Leases(JobStore(r, KEYS, 60), 30.0).start(job_id, "w", f"{job_id}-2") is not None
     assert not r.sismember(KEYS.jobs_queued, job_id)
+
+
+def test_a_submission_answers_the_bytes_fastapi_would_serialise(
+    client: TestClient, r: redis.Redis
+) -> None:
+    """The 202 is serialised by the route (``submissions.accepted``), not by FastAPI's pass over
+    the route's response_model: its body is the bytes that pass gives, for a new job and for
+    the replay of a finished one (a result with awkward floats and an aliased field, artifacts)."""
+    route = next(
+        rt
+        for rt in estimates.router.routes
+        if isinstance(rt, APIRoute) and rt.endpoint is estimates.create_estimate
+    )
+    assert route.response_field is not None and route.status_code == 202
+    store = JobStore(r, KEYS, 60, blobs=client.app.state.blobs)  # type: ignore[attr-defined]
+
+    def fastapi_bytes(job_id: str) -> bytes:
+        record = store.get(job_id)
+        assert record is not None
+        value, errors = route.response_field.validate(  # type: ignore[union-attr]
+            estimate_public(record), {}, loc=("response",)
+        )
+        assert not errors
+        return route.response_field.serialize_json(value, by_alias=True)  # type: ignore[union-attr]
+
+    key = {"Idempotency-Key": "bytes-1"}
+    first = submit(client, base_request(options={"max_iterations": 7}), headers=key)
+    assert first.status_code == 202 and first.headers["content-type"] == "application/json"
+    job_id = first.json()["id"]
+    assert first.content == fastapi_bytes(job_id)
+    pose = {"R": [[0.1 + 0.2, -1.0, 0.0], [1.0, 1e-17, 0.0], [0.0, 0.0, 1.0]],
+            "q": [1e16, -0.0, 2.5e-7], "quaternion": [1, 0, 0, 0], "t": [0, 0, 1 / 3]}  # fmt: skip
+    step = {"iteration": 1, "stage": "refine", "pose": pose, "cost": 1.0, "step_norm": 0.1,
+            "lambda": 1e-3, "accepted": True, "features": 10, "renders": 13,
+            "seconds": 0.5}  # fmt: skip
+    result = EstimateResult.model_validate(
+        {"pose": pose, "initial_pose": pose, "converged": True, "reason": "cost_converged",
+         "iterations": 1, "renders": 13, "seconds": 0.5, "method": "default", "history": [step],
+         "features": 10, "rms_residual_px": 0.2, "alignment_score": 0.95, "variant": "scalar_rgb"}
+    )  # fmt: skip
+    assert store.finish(
+        job_id, "succeeded", result_json=result.model_dump_json(), artifacts={"overlay": b"png"}
+    )
+    again = submit(client, base_request(options={"max_iterations": 7}), headers=key)
+    assert again.status_code == 202 and again.headers["idempotent-replayed"] == "true"
+    assert again.json()["status"] == "succeeded" and again.json()["artifacts"]
+    assert again.content == fastapi_bytes(job_id)
+    assert list(again.headers)[:3] == ["content-length", "content-type", "location"]

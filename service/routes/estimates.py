@@ -12,14 +12,14 @@ from fastapi.responses import StreamingResponse
 from schemas.jobs import EstimateCreate, EstimateList, EstimatePublic, JobStatus
 from schemas.models import MODEL_ID_PATTERN
 from schemas.settings import Settings
-from service.auth import PrincipalDep
-from service.deps import AsyncRedisDep, JobStoreDep, ModelStoreDep, Multipart, SettingsDep
+from service.deps import AsyncRedisDep, CallerDep, JobStoreDep, Multipart, SettingsDep
 from service.events import event_stream
 from service.resources import estimate_location, estimate_public, estimate_summary
 from service.store import JobRecord, JobStore, Reaper
 from service.submissions import (
     REQUEST_EXAMPLE,
     IdempotencyKey,
+    accepted,
     artifact_response,
     cancel,
     check_idempotency_key,
@@ -74,27 +74,23 @@ def create_estimate(
             examples=[REQUEST_EXAMPLE],
         ),
     ],
-    jobs: JobStoreDep,
-    models: ModelStoreDep,
-    settings: SettingsDep,
-    principal: PrincipalDep,
-    response: Response,
+    caller: CallerDep,
     idempotency_key: IdempotencyKey = None,
-) -> EstimatePublic:
+) -> Response:
+    settings, jobs = caller.settings, caller.jobs
     check_idempotency_key(idempotency_key)
     body = parse_request(request, settings.max_request_json_bytes, EstimateCreate)
-    check_model(models, body.model_id)
+    check_model(caller.models, body.model_id)
     data = read_image(image, body.camera, settings.max_image_bytes, settings.max_image_pixels)
     engine_request = body.engine_request()
     request_json = engine_request.model_dump_json(exclude_unset=True, by_alias=True)
     fingerprint = fingerprint_of(body.model_id.encode(), request_json.encode(), data)
     job_id = secrets.token_hex(16)  # 128 random bits: ids cannot be guessed
-    owner = principal.name
+    owner = caller.principal.name
     earlier = replay(jobs, owner, idempotency_key, job_id, fingerprint)
     if earlier is not None:
-        response.headers["Location"] = estimate_location(earlier.id)
-        response.headers["Idempotent-Replayed"] = "true"
-        return estimate_public(Reaper(jobs, settings.job_max_attempts).reconcile(earlier))
+        earlier = Reaper(jobs, settings.job_max_attempts).reconcile(earlier)
+        return accepted(estimate_public(earlier), estimate_location(earlier.id), replayed=True)
     max_iterations = engine_request.options.resolved().max_iterations
     record = create_or_refuse(
         lambda: jobs.create(
@@ -119,8 +115,7 @@ def create_estimate(
         body.model_id,
         extra={"job_id": job_id, "owner": owner, "model_id": body.model_id},
     )
-    response.headers["Location"] = estimate_location(job_id)
-    return estimate_public(record)
+    return accepted(estimate_public(record), estimate_location(job_id))
 
 
 @router.get(

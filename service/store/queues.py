@@ -41,6 +41,7 @@ class Queues:
 
     def __init__(self, r: redis.Redis, keys: Keys) -> None:
         self.r = r
+        self.keys = keys
         self.estimates = Queue(keys.estimate_queue, connection=r, serializer=JSONSerializer)
         self.renders = Queue(keys.render_queue, connection=r, serializer=JSONSerializer)
 
