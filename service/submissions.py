@@ -18,7 +18,14 @@ from schemas.jobs import CREATE_EXAMPLE
 from schemas.names import BUILTIN_MODEL_IDS
 from schemas.settings import Settings
 from service.errors import ApiError, echo, field_error, not_found, validation_failed
-from service.store import ActiveJobsLimitError, JobRecord, JobStore, ModelStore, Reaper
+from service.store import (
+    ActiveJobsLimitError,
+    IdempotencyKeyTaken,
+    JobRecord,
+    JobStore,
+    ModelStore,
+    Reaper,
+)
 from service.uploads import UploadRejected, inspect_image
 
 RequestModel = TypeVar("RequestModel", bound=BaseModel)
@@ -127,41 +134,19 @@ def fingerprint_of(*parts: bytes) -> str:
     return hashlib.sha256(b"\0".join(parts)).hexdigest()
 
 
-def replay(
-    jobs: JobStore, owner: str, key: str | None, job_id: str, fingerprint: str
-) -> JobRecord | None:
-    """With an Idempotency-Key: the job an earlier use of it made (None if this is the first
-    use, now reserved for ``job_id``); 422 if it was used for another request, 409 while that
-    one is still being stored."""
-    if key is None:
-        return None
-    earlier = jobs.claim_idempotency(owner, key, job_id, fingerprint)
-    if earlier is None:
-        return None
-    if earlier["fingerprint"] != fingerprint:
-        raise field_error(
-            422,
-            ("header", "Idempotency-Key"),
-            "this key was already used with a different request; use a new key per request",
-            "idempotency_key_reused",
-        )
-    record = jobs.get(earlier["job_id"])
-    if record is None:
-        raise ApiError(
-            409,
-            detail="a request with this Idempotency-Key is still being processed; retry",
-            code="idempotency_in_progress",
-        )
-    return record
+def create_or_replay(
+    create: Callable[[], JobRecord], jobs: JobStore, owner: str, key: str | None, fingerprint: str
+) -> tuple[JobRecord, bool]:
+    """``create()``, which claims the Idempotency-Key ``key`` (if any) as it reserves the job's
+    place: (the new job, False). When an earlier use of the key has it: (that job, True); 422
+    if it was used for another request, 409 while that one is still being stored.
 
-
-def create_or_refuse(
-    create: Callable[[], JobRecord], jobs: JobStore, owner: str, key: str | None
-) -> JobRecord:
-    """``create()``; when it fails, the Idempotency-Key is given back, and the per-key cap of
-    active jobs is answered 429 with a Retry-After."""
+    When the create fails, the key is given back, and the per-key cap of active jobs is
+    answered 429 with a Retry-After."""
     try:
-        return create()
+        return create(), False
+    except IdempotencyKeyTaken as taken:
+        return _earlier(jobs, taken.claim, fingerprint), True
     except BaseException as exc:
         if key is not None:
             jobs.release_idempotency(owner, key)
@@ -174,6 +159,25 @@ def create_or_refuse(
                 headers={"Retry-After": str(ACTIVE_CAP_RETRY_AFTER_S)},
             ) from exc
         raise
+
+
+def _earlier(jobs: JobStore, claim: dict[str, str], fingerprint: str) -> JobRecord:
+    """The job of an Idempotency-Key's earlier use (``claim``)."""
+    if claim["fingerprint"] != fingerprint:
+        raise field_error(
+            422,
+            ("header", "Idempotency-Key"),
+            "this key was already used with a different request; use a new key per request",
+            "idempotency_key_reused",
+        )
+    record = jobs.get(claim["job_id"])
+    if record is None:
+        raise ApiError(
+            409,
+            detail="a request with this Idempotency-Key is still being processed; retry",
+            code="idempotency_in_progress",
+        )
+    return record
 
 
 def accepted(resource: BaseModel, location: str, replayed: bool = False) -> Response:

@@ -73,6 +73,21 @@ def test_idempotency_key_returns_the_same_job(client: TestClient, r: redis.Redis
     assert Queue(KEYS.estimate_queue, connection=r).count == 2
 
 
+def test_a_key_whose_first_request_is_not_stored_yet_answers_409(
+    client: TestClient, r: redis.Redis
+) -> None:
+    """The key is claimed before the job is written: a retry that finds the claim but not its
+    job (the first request still between the two) is told to retry, and creates nothing."""
+    key = {"Idempotency-Key": "in-flight"}
+    job_id = submit(client, headers=key).json()["id"]
+    r.delete(KEYS.job(job_id))  # as if the first request had only claimed the key so far
+    again = submit(client, headers=key)
+    assert again.status_code == 409, again.text
+    assert again.json()["code"] == "idempotency_in_progress"
+    assert Queue(KEYS.estimate_queue, connection=r).count == 1
+    assert json.loads(r.get(KEYS.idempotency("anonymous", "in-flight")))["job_id"] == job_id  # type: ignore[arg-type]
+
+
 def test_listing_is_newest_first_and_paged(client: TestClient) -> None:
     ids = [submit(client).json()["id"] for _ in range(5)]
     assert [j["id"] for j in client.get("/v1/estimates").json()["items"]] == ids[::-1]

@@ -17,7 +17,7 @@ from conftest import RedisServer
 
 from service.store import JobStore, Keys
 from service.store.blobs import FileBlobStore
-from service.store.jobs import TRACEBACK_MAX_CHARS, ActiveJobsLimitError
+from service.store.jobs import TRACEBACK_MAX_CHARS, ActiveJobsLimitError, IdempotencyKeyTaken
 
 DB = 9
 THREADS = 24
@@ -101,6 +101,37 @@ def test_a_failed_write_gives_the_reserved_place_back(
     store.create("b" * 32, "demo-sat", "{}", 3, b"png", "fp", owner="alice", timeout_s=60,
                  max_active=1)  # fmt: skip
     assert store.get("a" * 32) is None and store.get("b" * 32) is not None
+
+
+def test_an_idempotency_key_is_claimed_with_the_reservation(store: JobStore) -> None:
+    """The first create with a key claims it (for the retention); another create with it then
+    raises IdempotencyKeyTaken with that claim and reserves and writes nothing; at the cap the
+    claim stays (the caller gives it back), and a released key can be claimed again."""
+    r, keys = store.r, store.keys
+    store.create("a" * 32, "demo-sat", "{}", 3, b"png", "fp-a", owner="alice", timeout_s=60,
+                 max_active=2, idempotency_key="k1")  # fmt: skip
+    claim = {"job_id": "a" * 32, "fingerprint": "fp-a"}
+    assert json.loads(r.get(keys.idempotency("alice", "k1"))) == claim  # type: ignore[arg-type]
+    assert 3590 < r.ttl(keys.idempotency("alice", "k1")) <= 3600  # type: ignore[operator]
+    with pytest.raises(IdempotencyKeyTaken) as taken:
+        store.create("b" * 32, "demo-sat", "{}", 3, b"png", "fp-b", owner="alice", timeout_s=60,
+                     max_active=2, idempotency_key="k1")  # fmt: skip
+    assert taken.value.claim == claim
+    assert r.scard(keys.owner_active("alice")) == 1 and r.get(keys.jobs_seq) == b"1"
+    assert store.get("b" * 32) is None and store.queues.estimates.count == 1
+    # another owner's key of the same name is another key
+    store.create("c" * 32, "demo-sat", "{}", 3, b"png", "fp", owner="bob", timeout_s=60,
+                 idempotency_key="k1")  # fmt: skip
+    store.create("d" * 32, "demo-sat", "{}", 3, b"png", "fp", owner="alice", timeout_s=60,
+                 max_active=2)  # fmt: skip
+    with pytest.raises(ActiveJobsLimitError):
+        store.create("e" * 32, "demo-sat", "{}", 3, b"png", "fp-e", owner="alice", timeout_s=60,
+                     max_active=2, idempotency_key="k2")  # fmt: skip
+    assert json.loads(r.get(keys.idempotency("alice", "k2")))["job_id"] == "e" * 32  # type: ignore[arg-type]
+    store.release_idempotency("alice", "k2")
+    store.create("f" * 32, "demo-sat", "{}", 3, b"png", "fp-f", owner="alice", timeout_s=60,
+                 idempotency_key="k2")  # fmt: skip
+    assert json.loads(r.get(keys.idempotency("alice", "k2")))["job_id"] == "f" * 32  # type: ignore[arg-type]
 
 
 def test_a_created_job_reads_back_as_the_record_create_returned(store: JobStore) -> None:

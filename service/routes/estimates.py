@@ -24,12 +24,11 @@ from service.submissions import (
     cancel,
     check_idempotency_key,
     check_model,
-    create_or_refuse,
+    create_or_replay,
     fingerprint_of,
     get_or_404,
     parse_request,
     read_image,
-    replay,
 )
 
 router = APIRouter(prefix="/v1/estimates", tags=["estimates"])
@@ -87,12 +86,8 @@ def create_estimate(
     fingerprint = fingerprint_of(body.model_id.encode(), request_json.encode(), data)
     job_id = secrets.token_hex(16)  # 128 random bits: ids cannot be guessed
     owner = caller.principal.name
-    earlier = replay(jobs, owner, idempotency_key, job_id, fingerprint)
-    if earlier is not None:
-        earlier = Reaper(jobs, settings.job_max_attempts).reconcile(earlier)
-        return accepted(estimate_public(earlier), estimate_location(earlier.id), replayed=True)
     max_iterations = engine_request.options.resolved().max_iterations
-    record = create_or_refuse(
+    record, replayed = create_or_replay(
         lambda: jobs.create(
             job_id,
             body.model_id,
@@ -103,11 +98,16 @@ def create_estimate(
             owner=owner,
             timeout_s=settings.job_timeout_s,
             max_active=settings.max_active_jobs_per_key,
+            idempotency_key=idempotency_key,
         ),
         jobs,
         owner,
         idempotency_key,
+        fingerprint,
     )
+    if replayed:
+        record = Reaper(jobs, settings.job_max_attempts).reconcile(record)
+        return accepted(estimate_public(record), estimate_location(record.id), replayed=True)
     log.info(
         "estimate %s queued for '%s' (model %s)",
         job_id,

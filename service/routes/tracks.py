@@ -28,12 +28,11 @@ from service.submissions import (
     cancel,
     check_idempotency_key,
     check_model,
-    create_or_refuse,
+    create_or_replay,
     fingerprint_of,
     get_or_404,
     parse_request,
     read_image,
-    replay,
 )
 
 router = APIRouter(prefix="/v1/tracks", tags=["tracks"])
@@ -162,13 +161,8 @@ def create_track(
     )
     job_id = secrets.token_hex(16)
     owner = principal.name
-    earlier = replay(jobs, owner, idempotency_key, job_id, fingerprint)
-    if earlier is not None:
-        response.headers["Location"] = track_location(earlier.id)
-        response.headers["Idempotent-Replayed"] = "true"
-        return track_public(Reaper(jobs, settings.job_max_attempts).reconcile(earlier))
     timeout_s = settings.job_timeout_s + TRACK_TIMEOUT_PER_FRAME_S * len(named)
-    record = create_or_refuse(
+    record, replayed = create_or_replay(
         lambda: jobs.create_track(
             job_id,
             body.model_id,
@@ -178,11 +172,17 @@ def create_track(
             owner=owner,
             timeout_s=timeout_s,
             max_active=settings.max_active_jobs_per_key,
+            idempotency_key=idempotency_key,
         ),
         jobs,
         owner,
         idempotency_key,
+        fingerprint,
     )
+    if replayed:
+        response.headers["Location"] = track_location(record.id)
+        response.headers["Idempotent-Replayed"] = "true"
+        return track_public(Reaper(jobs, settings.job_max_attempts).reconcile(record))
     log.info(
         "track %s queued for '%s' (model %s, %d frames)",
         *(job_id, owner, body.model_id, len(named)),

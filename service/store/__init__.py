@@ -6,7 +6,7 @@ bytes); values are decoded here.
 """
 
 from service.store.access import ANONYMOUS, Principal
-from service.store.jobs import ActiveJobsLimitError, JobStore
+from service.store.jobs import ActiveJobsLimitError, IdempotencyKeyTaken, JobStore
 from service.store.keys import Keys
 from service.store.leases import Leases, Reaper
 from service.store.models import ModelStore
@@ -17,6 +17,7 @@ from service.store.stats import JobStats
 __all__ = [
     "ANONYMOUS",
     "ActiveJobsLimitError",
+    "IdempotencyKeyTaken",
     "JobRecord",
     "JobStats",
     "JobStore",

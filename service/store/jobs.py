@@ -52,13 +52,19 @@ LIST_SCAN_MAX = 1000
 TRACEBACK_MAX_CHARS = 4000
 #: States in which a job counts against its owner's cap and may still change.
 ACTIVE_STATUSES = ("queued", "running")
-#: Reserve a place among the owner's active jobs (KEYS[1]) for job ARGV[1] unless ARGV[2] > 0
-#: of them are active already (-1); else the job's sequence number (INCR of KEYS[2]).
+#: With an idempotency key (KEYS[3]), first claim it (ARGV[3] for ARGV[4] s): a key claimed
+#: already returns {-2, the earlier claim} and reserves nothing. Then reserve a place among the
+#: owner's active jobs (KEYS[1]) for job ARGV[1] unless ARGV[2] > 0 of them are active already
+#: ({-1}, the key staying claimed until the caller releases it); else {the job's sequence number
+#: (INCR of KEYS[2])}. One round trip where a claim and a reservation took two.
 _RESERVE = """
+if KEYS[3] and not redis.call('SET', KEYS[3], ARGV[3], 'NX', 'EX', ARGV[4]) then
+  return {-2, redis.call('GET', KEYS[3])}
+end
 local limit = tonumber(ARGV[2])
-if limit > 0 and redis.call('SCARD', KEYS[1]) >= limit then return -1 end
+if limit > 0 and redis.call('SCARD', KEYS[1]) >= limit then return {-1} end
 redis.call('SADD', KEYS[1], ARGV[1])
-return redis.call('INCR', KEYS[2])
+return {redis.call('INCR', KEYS[2])}
 """
 
 
@@ -68,6 +74,15 @@ class ActiveJobsLimitError(Exception):
     def __init__(self, limit: int) -> None:
         super().__init__(f"{limit} estimates of this API key are queued or running")
         self.limit = limit
+
+
+class IdempotencyKeyTaken(Exception):
+    """A create's idempotency key was claimed by an earlier request: ``claim`` is that
+    request's {"job_id", "fingerprint"}. Nothing was created or reserved."""
+
+    def __init__(self, claim: dict[str, str]) -> None:
+        super().__init__(f"idempotency key taken by job {claim.get('job_id')}")
+        self.claim = claim
 
 
 def _queued(
@@ -85,6 +100,12 @@ def _queued(
         owner=owner,
         fingerprint=fingerprint,
     )
+
+
+def _claim(job_id: str, fingerprint: str) -> str:
+    """What an idempotency key holds: the job it was first used for, and that request's
+    fingerprint."""
+    return json.dumps({"job_id": job_id, "fingerprint": fingerprint})
 
 
 class JobStore:
@@ -128,18 +149,23 @@ class JobStore:
         owner: str,
         timeout_s: int,
         max_active: int = 0,
+        idempotency_key: str | None = None,
     ) -> JobRecord:
         """Store a new queued job with its image and enqueue it. The image goes to the blob
         store first: if that fails (BlobStoreUnavailable), nothing is written or enqueued.
 
+        With ``idempotency_key``, the owner's key is first claimed for this job for the
+        retention; IdempotencyKeyTaken if an earlier request has it. A claim stays when the
+        create fails afterwards: :meth:`release_idempotency` gives it back.
+
         Raises ActiveJobsLimitError when ``max_active`` > 0 and the owner has that many queued
-        or running jobs. The check and the job's place in the owner's active set are one Lua
-        call, so concurrent submissions can neither overshoot the cap nor make each other
-        retry (a WATCH on the shared set did: 50 at once took ~0.2 s each); the job itself is
-        then written and enqueued in one MULTI transaction."""
+        or running jobs. The claim, the check and the job's place in the owner's active set are
+        one Lua call, so concurrent submissions can neither overshoot the cap nor make each
+        other retry (a WATCH on the shared set did: 50 at once took ~0.2 s each); the job itself
+        is then written and enqueued in one MULTI transaction."""
         record = _queued(job_id, model_id, request_json, max_iterations, fingerprint, owner)
         record.timeout_s, record.image_blob = timeout_s, job_image_name(job_id)
-        return self._create(record, {job_image_name(job_id): image}, max_active)
+        return self._create(record, {job_image_name(job_id): image}, max_active, idempotency_key)
 
     def create_track(
         self,
@@ -152,6 +178,7 @@ class JobStore:
         owner: str,
         timeout_s: int,
         max_active: int = 0,
+        idempotency_key: str | None = None,
     ) -> JobRecord:
         """Store a new queued track job with its frames ((file name, bytes), in order) and
         enqueue it, like :meth:`create` (its progress counts frames)."""
@@ -162,14 +189,29 @@ class JobStore:
         record = _queued(job_id, model_id, request_json, len(frames), fingerprint, owner)
         record.timeout_s, record.kind, record.inputs = timeout_s, "track", inputs
         blobs = {ref["blob"]: data for ref, (_name, data) in zip(inputs, frames, strict=True)}
-        return self._create(record, blobs, max_active)
+        return self._create(record, blobs, max_active, idempotency_key)
 
-    def _create(self, record: JobRecord, inputs: dict[str, bytes], max_active: int) -> JobRecord:
-        """Reserve the owner's place, write the inputs, then the record and its queue entry
-        in one transaction; on any failure, undo what was done."""
+    def _create(
+        self,
+        record: JobRecord,
+        inputs: dict[str, bytes],
+        max_active: int,
+        idempotency_key: str | None,
+    ) -> JobRecord:
+        """Claim the idempotency key and reserve the owner's place, write the inputs, then the
+        record and its queue entry in one transaction; on any failure after the reservation,
+        undo what was done (but for the claim)."""
         job_id, owner = record.id, record.owner
         active = self.keys.owner_active(owner)
-        seq = int(self._reserve(keys=[active, self.keys.jobs_seq], args=[job_id, max_active]))
+        keys = [active, self.keys.jobs_seq]
+        args: list[str | int] = [job_id, max_active]
+        if idempotency_key is not None:
+            keys.append(self.keys.idempotency(owner, idempotency_key))
+            args += [_claim(job_id, record.fingerprint), self.retention_s]
+        reply = self._reserve(keys=keys, args=args)
+        if reply[0] == -2:
+            raise IdempotencyKeyTaken(json.loads(reply[1]))
+        seq = int(reply[0])
         if seq < 0:
             raise ActiveJobsLimitError(max_active)
         record.seq = seq
@@ -278,20 +320,6 @@ class JobStore:
         return page, last_seq if not exhausted and scanned >= LIST_SCAN_MAX else None
 
     # ------------------------------------------------------------------ idempotency
-    def claim_idempotency(
-        self, owner: str, key: str, job_id: str, fingerprint: str
-    ) -> dict[str, str] | None:
-        """Reserve the owner's ``key`` for ``job_id``; None if reserved now, else the earlier
-        claim."""
-        value = json.dumps({"job_id": job_id, "fingerprint": fingerprint})
-        name = self.keys.idempotency(owner, key)
-        if self.r.set(name, value, nx=True, ex=self.retention_s):
-            return None
-        raw = self.r.get(name)
-        if raw is None:  # expired between the two calls: claim again
-            return self.claim_idempotency(owner, key, job_id, fingerprint)
-        return json.loads(raw)  # type: ignore[arg-type]
-
     def release_idempotency(self, owner: str, key: str) -> None:
         self.r.delete(self.keys.idempotency(owner, key))
 
