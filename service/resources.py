@@ -54,21 +54,24 @@ def job_fields(record: JobRecord) -> dict[str, Any]:
     }
 
 
+def _summary_fields(record: JobRecord, result: EstimateResult | None) -> dict[str, Any]:
+    return {
+        **job_fields(record),
+        "progress": record.progress_model(),
+        "outcome": estimate_outcome(result) if result is not None else None,
+    }
+
+
 def estimate_summary(record: JobRecord, result: EstimateResult | None = None) -> EstimateSummary:
     if result is None:
         result = _result(record)
-    return EstimateSummary(
-        **job_fields(record),
-        progress=record.progress_model(),
-        outcome=estimate_outcome(result) if result is not None else None,
-    )
+    return EstimateSummary(**_summary_fields(record, result))
 
 
 def estimate_public(record: JobRecord) -> EstimatePublic:
     result = _result(record)
-    summary = estimate_summary(record, result)
     return EstimatePublic(
-        **dict(summary),
+        **_summary_fields(record, result),
         request=json.loads(record.request) if record.request else None,
         result=result,
         artifacts={
