@@ -153,3 +153,31 @@ def test_damping_bookkeeping() -> None:
     tiny = Damping(LAMBDA_MIN)
     tiny.accept(1.0)
     assert tiny.lam == LAMBDA_MIN
+
+
+class JumpingFeatures(LinearFeatures):
+    """LinearFeatures of which two jump JUMP_PX in every render away from the start, as
+    features on a face at grazing light do when a step tilts the sun."""
+
+    JUMP_PX = 10.0
+
+    def measure(self, view: object, guess: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:
+        h, ok = super().measure(view, guess)
+        if not np.allclose(increment_between(R0, T0, view.R, view.t), 0.0):  # type: ignore[attr-defined]
+            h[:2] += self.JUMP_PX
+        return h, ok
+
+
+def test_a_step_the_other_features_confirm_is_taken_though_two_features_jump(
+    linear_problem: object, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """Two features of 30 jump 10 px in the trial render (their squares alone outweigh what the
+    step gains on the rest): the trial is judged with each feature's share capped at
+    TUKEY_C robust σ, so it is accepted, and the stage lands on the truth with the two
+    down-weighted. Judged on the plain weighted cost, every trial was rejected and the
+    estimate stayed at the start."""
+    monkeypatch.setattr(refine, "TrackedFeatures", JumpingFeatures)
+    session = make_session(max_iterations=30)
+    run_lm_stage(session, "klt", "refine")
+    assert session.history[0].accepted
+    assert _error(session).max() < 1e-4

@@ -75,6 +75,14 @@ def weighted_cost(r: Array, w: Array | None = None) -> float:
     return float(np.sum(w * sq) / max(np.sum(w), 1e-12))
 
 
+def capped_cost(r: Array, w: Array, cap_px: float) -> float:
+    """weighted_cost with each feature's squared residual capped at ``cap_px``²: a feature that
+    jumps (a face turning into or out of the light, an occlusion) counts as an outlier, not by
+    the square of its jump."""
+    sq = np.minimum(r[0::2] ** 2 + r[1::2] ** 2, cap_px**2)
+    return float(np.sum(w * sq) / max(np.sum(w), 1e-12))
+
+
 def irls_increment(
     J: Array, r: Array, iterations: int = 5, w0: Array | None = None
 ) -> tuple[Array, Array, float]:
