@@ -41,7 +41,15 @@ from service.store.blobs.base import (
 from service.store.keys import Keys
 from service.store.queues import Queues
 from service.store.records import RESULT_Z_FIELD, JobRecord, pack_result, text, utc_now
+from service.store.reservations import (
+    RESERVE_SCRIPT,
+    ActiveJobsLimitError,
+    IdempotencyKeyTaken,
+    claim_value,
+)
 from service.store.transitions import Current, Transitions
+
+__all__ = ["ActiveJobsLimitError", "IdempotencyKeyTaken", "JobStore"]
 
 log = logging.getLogger(__name__)
 
@@ -52,37 +60,6 @@ LIST_SCAN_MAX = 1000
 TRACEBACK_MAX_CHARS = 4000
 #: States in which a job counts against its owner's cap and may still change.
 ACTIVE_STATUSES = ("queued", "running")
-#: With an idempotency key (KEYS[3]), first claim it (ARGV[3] for ARGV[4] s): a key claimed
-#: already returns {-2, the earlier claim} and reserves nothing. Then reserve a place among the
-#: owner's active jobs (KEYS[1]) for job ARGV[1] unless ARGV[2] > 0 of them are active already
-#: ({-1}, the key staying claimed until the caller releases it); else {the job's sequence number
-#: (INCR of KEYS[2])}. One round trip where a claim and a reservation took two.
-_RESERVE = """
-if KEYS[3] and not redis.call('SET', KEYS[3], ARGV[3], 'NX', 'EX', ARGV[4]) then
-  return {-2, redis.call('GET', KEYS[3])}
-end
-local limit = tonumber(ARGV[2])
-if limit > 0 and redis.call('SCARD', KEYS[1]) >= limit then return {-1} end
-redis.call('SADD', KEYS[1], ARGV[1])
-return {redis.call('INCR', KEYS[2])}
-"""
-
-
-class ActiveJobsLimitError(Exception):
-    """The owner already has ``limit`` queued or running jobs."""
-
-    def __init__(self, limit: int) -> None:
-        super().__init__(f"{limit} estimates of this API key are queued or running")
-        self.limit = limit
-
-
-class IdempotencyKeyTaken(Exception):
-    """A create's idempotency key was claimed by an earlier request: ``claim`` is that
-    request's {"job_id", "fingerprint"}. Nothing was created or reserved."""
-
-    def __init__(self, claim: dict[str, str]) -> None:
-        super().__init__(f"idempotency key taken by job {claim.get('job_id')}")
-        self.claim = claim
 
 
 def _queued(
@@ -100,12 +77,6 @@ def _queued(
         owner=owner,
         fingerprint=fingerprint,
     )
-
-
-def _claim(job_id: str, fingerprint: str) -> str:
-    """What an idempotency key holds: the job it was first used for, and that request's
-    fingerprint."""
-    return json.dumps({"job_id": job_id, "fingerprint": fingerprint})
 
 
 class JobStore:
@@ -128,7 +99,7 @@ class JobStore:
         self._blobs = blobs
         self.queues = queues if queues is not None else Queues(r, keys)
         self.transitions = Transitions(r, keys, retention_s)
-        self._reserve = r.register_script(_RESERVE)
+        self._reserve = r.register_script(RESERVE_SCRIPT)
 
     @property
     def blobs(self) -> BlobStore:
@@ -207,7 +178,7 @@ class JobStore:
         args: list[str | int] = [job_id, max_active]
         if idempotency_key is not None:
             keys.append(self.keys.idempotency(owner, idempotency_key))
-            args += [_claim(job_id, record.fingerprint), self.retention_s]
+            args += [claim_value(job_id, record.fingerprint), self.retention_s]
         reply = self._reserve(keys=keys, args=args)
         if reply[0] == -2:
             raise IdempotencyKeyTaken(json.loads(reply[1]))
