@@ -200,3 +200,38 @@ def analytic_jacobian(
         Jh = np.einsum("kij,kjn->kin", P, Jh.reshape(-1, 2, 6)).reshape(-1, 6)
     J[np.repeat(hit, 2)] = Jh
     return LearnedJacobian(J, hit.copy(), np.zeros((6, 0)), 0)
+
+
+#: Median predicted feature motion (px) below which a step does not update the Jacobian.
+BROYDEN_MIN_MOTION_PX = 0.3
+
+
+def broyden_update(
+    session: Session,
+    J: Array,
+    h: Array,
+    idx: NDArray[np.intp],
+    h_new: Array,
+    dp: Array,
+    sun_motion: Array | None = None,
+) -> None:
+    """Correct the learned rows ``J`` (2k, 6) of features ``idx`` along the step ``dp`` just
+    taken, in place (Broyden's rank-1 update).
+
+    After an accepted step the features' actual motion h_new − h is known; J_k gains
+    (Δh_k − J_k δp) s'ᵀ / s'ᵀs' in parameters scaled by the perturbation sizes (so rotation
+    and translation count alike). Skipped for steps whose predicted motion is within the
+    measurement noise, where the update would learn noise. ``sun_motion`` (2k,): the part of
+    the motion a change of the sun explains.
+    """
+    rows = np.concatenate([2 * idx[:, None], 2 * idx[:, None] + 1], axis=1).ravel()
+    predicted = J[rows] @ dp
+    if np.median(np.abs(predicted)) < BROYDEN_MIN_MOTION_PX:
+        return
+    angle, half = perturbation_sizes(session)
+    S = np.concatenate([np.full(3, 0.5 * angle), half])
+    s = dp / S
+    moved = (h_new[idx] - h[idx]).ravel()
+    if sun_motion is not None:
+        moved = moved - sun_motion[rows]
+    J[rows] += np.outer(moved - predicted, s / (s @ s)) / S

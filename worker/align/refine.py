@@ -21,8 +21,8 @@ from schemas.estimate import Stage
 from worker.align.learning import (
     LearnedJacobian,
     analytic_jacobian,
+    broyden_update,
     learn_at_pose,
-    perturbation_sizes,
 )
 from worker.align.lm import (
     TUKEY_C,
@@ -53,8 +53,6 @@ Outcome = Literal[
     "linear_step",
 ]
 
-#: Median predicted feature motion (px) below which a step does not update the Jacobian.
-BROYDEN_MIN_MOTION_PX = 0.3
 #: Consecutive rejected trials that end the stage (each costs a render; waiting for a third
 #: changed no estimate by more than 0.0001° on 11 cases).
 MAX_REJECTIONS = 2
@@ -124,27 +122,12 @@ def _broyden_update(
     dp: Array,
     sun_motion: Array | None = None,
 ) -> None:
-    """Correct each feature's learned rows along the step just taken (Broyden's rank-1 update).
-
-    After an accepted step the features' actual motion h_new − h is known; J_k gains
-    (Δh_k − J_k δp) s'ᵀ / s'ᵀs' in parameters scaled by the perturbation sizes (so rotation
-    and translation count alike). Skipped for steps whose predicted motion is within the
-    measurement noise, where the update would learn noise.
-    """
+    """Broyden's rank-1 correction of the stage's learned rows along the step just taken
+    (:func:`worker.align.learning.broyden_update`)."""
     assert st.learned is not None
-    idx = np.flatnonzero(active)[common]
-    J = st.learned.J
-    rows = np.concatenate([2 * idx[:, None], 2 * idx[:, None] + 1], axis=1).ravel()
-    predicted = J[rows] @ dp
-    if np.median(np.abs(predicted)) < BROYDEN_MIN_MOTION_PX:
-        return
-    angle, half = perturbation_sizes(session)
-    S = np.concatenate([np.full(3, 0.5 * angle), half])
-    s = dp / S
-    moved = (h_new[idx] - st.h[idx]).ravel()
-    if sun_motion is not None:  # the part of the motion the sun's tilt explains
-        moved = moved - sun_motion[rows]
-    J[rows] += np.outer(moved - predicted, s / (s @ s)) / S
+    broyden_update(
+        session, st.learned.J, st.h, np.flatnonzero(active)[common], h_new, dp, sun_motion
+    )
 
 
 @dataclass
@@ -338,8 +321,7 @@ def _trial(session: Session, st: StageState, system: _System, sun: SunTilt | Non
     common = ok_t[system.active]
     r_t = whiten(system.A, (st.features.x_ref - h_t)[system.active].ravel())
     rows = rows_of(common)
-    norms = feature_norms(system.r)[system.w > 0]
-    cap = TUKEY_C * robust_scale(norms if len(norms) else feature_norms(system.r))
+    cap = TUKEY_C * robust_scale(feature_norms(system.r)[system.w > 0])
     trial = _Trial(
         view,
         h_t,
@@ -378,11 +360,8 @@ def _judge(
         session.record(stage, system.cost, 0.0, damping.lam, False, n_common)
         damping.reject()
         return "stalled" if damping.rejected >= MAX_REJECTIONS else None
-    # Judged on the capped costs: each feature's share at most (TUKEY_C σ)², σ the robust
-    # scale of the current residuals, so that a few features whose trial positions jump (a
-    # face at grazing light turning on or off with the sun's tilt: two of 320 features moving
-    # 1.2–1.6 px made 98 % of a rejected trial's cost rise) do not reject a step the rest
-    # confirm.
+    # Capped costs: a few features that jump in the trial (at grazing light, as the sun tilts)
+    # must not reject a step the rest confirm (see lm.capped_cost).
     if not trial.capped < trial.capped_now:  # (a NaN cost is a rejection too)
         session.record(stage, trial.cost_now, 0.0, damping.lam, False, n_common)
         damping.reject()
