@@ -183,8 +183,7 @@ class CaseTask:
     #: "offset": from the case's initial guess; "truth": from the true pose (the drift).
     starts: tuple[str, ...] = ("offset",)
     sun_elevation_deg: tuple[float, float] | None = None  # terrain: sun elevation LO, HI, °
-    #: Spacecraft: the target's diameter over the smaller image side (> 1: past the frame).
-    fill: float = 0.6
+    fill: float = 0.6  # spacecraft: diameter / smaller image side (> 1: past the frame)
     #: Whether the case id names its size (a suite of several sizes).
     sized: bool = False
 
@@ -374,11 +373,9 @@ def run_method(
 
 
 def save_case(task: CaseTask, case: Case, records: list[dict[str, Any]]) -> None:
-    """Write the reference and one request per method, for ``proxpose estimate`` to replay.
-
-    With ``save_cases="failed"`` only cases some method did not solve are written; the
-    records of the written methods get a ``reproduce`` command line.
-    """
+    """Write the reference and one request per method (``proxpose estimate`` replays them);
+    with ``save_cases="failed"`` only cases some method did not solve, and their records get a
+    ``reproduce`` command line."""
     from worker.bench.stats import is_success
 
     chosen = [r for r in records if task.save_cases == "all" or not is_success(r)]
