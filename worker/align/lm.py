@@ -78,7 +78,8 @@ def weighted_cost(r: Array, w: Array | None = None) -> float:
 def capped_cost(r: Array, w: Array, cap_px: float) -> float:
     """weighted_cost with each feature's squared residual capped at ``cap_px``²: a feature that
     jumps (a face turning into or out of the light, an occlusion) counts as an outlier, not by
-    the square of its jump."""
+    the square of its jump. (Found on an Aura view: two of 320 features moved 1.2–1.6 px when
+    a trial tilted the sun, 98 % of the cost's rise, and both trials of a pass were rejected.)"""
     sq = np.minimum(r[0::2] ** 2 + r[1::2] ** 2, cap_px**2)
     return float(np.sum(w * sq) / max(np.sum(w), 1e-12))
 
