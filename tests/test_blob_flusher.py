@@ -52,7 +52,8 @@ def test_a_write_returns_before_its_fsync_and_the_flusher_fsyncs_it_and_its_dire
     assert path_a.read_bytes() == PNG  # readable at once
     assert fsynced == [] and flusher.pending() == 2  # nothing fsynced in the write itself
 
-    wanted = {path_a, path_b, path_a.parent, path_b.parent}
+    # the new job directories' entries are in jobs/, and jobs/'s in the store's root
+    wanted = {path_a, path_b, path_a.parent, path_b.parent, store.root / "jobs", store.root}
     deadline = time.monotonic() + FLUSH_WAIT_S
     while not wanted <= set(fsynced) and time.monotonic() < deadline:
         time.sleep(0.05)
@@ -61,7 +62,8 @@ def test_a_write_returns_before_its_fsync_and_the_flusher_fsyncs_it_and_its_dire
 
     store.put("jobs/c/image", PNG)  # an explicit flush does it now
     store.flush()
-    assert {store.root / "jobs/c/image", store.root / "jobs/c"} <= set(fsynced[-2:])
+    made = {store.root / "jobs/c/image", store.root / "jobs/c", store.root / "jobs", store.root}
+    assert made == set(fsynced[-4:])
 
 
 def test_a_blob_deleted_before_its_flush_is_no_error(tmp_path: Path) -> None:

@@ -49,7 +49,7 @@ class FileBlobStore:
             write_atomic(path, data, tmp_prefix=TMP_PREFIX, fsync=False)
         except OSError as exc:
             raise self._unavailable(exc) from exc
-        self.flusher.add(path)
+        self.flusher.add(path, root=self.root)
 
     def flush(self) -> None:
         """fsync the blobs written so far now (the flusher does it within ~0.1 s anyway)."""

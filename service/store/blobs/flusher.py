@@ -11,7 +11,8 @@ itself (power, kernel) loses data that is not yet on disk, and the Redis of ``pr
 (``appendfsync everysec``) then loses its last second of writes, jobs included; the image of a
 job is flushed within ``FLUSH_DELAY_S`` (0.1 s, plus the fsyncs themselves), well inside that
 second. Until this module, each write fsynced its file in the request (7–16 ms in a burst of
-30 on the 2-core VM); the rename itself was never fsynced (its directory now is).
+30 on the 2-core VM); the rename itself was never fsynced (its directory now is, and so is
+every directory up to the store's root that the write may have made).
 """
 
 from __future__ import annotations
@@ -55,11 +56,16 @@ class Flusher:
         self._flush_lock = threading.Lock()  # one pass at a time (the thread, flush(), exit)
         atexit.register(self.flush)
 
-    def add(self, path: Path) -> None:
-        """Have ``path`` (a file just renamed into place) and its directory fsynced soon."""
+    def add(self, path: Path, root: Path | None = None) -> None:
+        """Have ``path`` (a file just renamed into place) and its directory fsynced soon; with
+        ``root``, every directory from that one up to ``root`` too: the write may have made
+        them (``jobs/<id>/`` for a new job), and a new directory's entry is in its parent."""
+        dirs = [path.parent]
+        if root is not None and path.parent.is_relative_to(root):
+            dirs += [d for d in path.parent.parents if d.is_relative_to(root)]
         with self._wake:
             self._files.add(path)
-            self._dirs.add(path.parent)
+            self._dirs.update(dirs)
             if self._thread is None or not self._thread.is_alive():
                 self._thread = threading.Thread(target=self._run, name="blob-flusher", daemon=True)
                 self._thread.start()
