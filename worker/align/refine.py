@@ -113,23 +113,6 @@ def _weights(
     return irls_increment(J, r, w0=w0)[1]
 
 
-def _broyden_update(
-    session: Session,
-    st: StageState,
-    active: NDArray[np.bool_],
-    common: NDArray[np.bool_],
-    h_new: Array,
-    dp: Array,
-    sun_motion: Array | None = None,
-) -> None:
-    """Broyden's rank-1 correction of the stage's learned rows along the step just taken
-    (:func:`worker.align.learning.broyden_update`)."""
-    assert st.learned is not None
-    broyden_update(
-        session, st.learned.J, st.h, np.flatnonzero(active)[common], h_new, dp, sun_motion
-    )
-
-
 @dataclass
 class _System:
     """The linearised problem at the current pose, over the active features (a of them)."""
@@ -371,7 +354,9 @@ def _judge(
             return "cost_converged"
         return "stalled" if damping.lam > LAMBDA_MAX else None
     session.accept(trial.view)
-    _broyden_update(session, st, system.active, trial.common, trial.h, system.dp, trial.sun_motion)
+    assert st.learned is not None
+    idx = np.flatnonzero(system.active)[trial.common]
+    broyden_update(session, st.learned.J, st.h, idx, trial.h, system.dp, trial.sun_motion)
     st.h, st.ok = trial.h, st.ok & trial.ok
     rows = rows_of(trial.common)
     x = trial.h[system.active][trial.common]
