@@ -51,26 +51,13 @@ def test_a_docking_range_case_runs_past_the_frame(tmp_path: Path) -> None:
 
 
 def test_bench_config_records_the_fill_and_the_report_names_it() -> None:
+    from worker.bench.cli import add_arguments
     from worker.bench.config import make_config
     from worker.bench.report import _fill_text
 
-    args = argparse.Namespace(
-        quick=True,
-        full=False,
-        robustness=False,
-        references=None,
-        starts=None,
-        models=None,
-        methods=["default"],
-        bands=[3.0],
-        cases=None,
-        size=None,
-        seed=0,
-        offsets="uniform",
-        jobs=1,
-        save_cases="failed",
-        fill=3.0,
-    )
+    parser = argparse.ArgumentParser()
+    add_arguments(parser)  # the real options and their defaults
+    args = parser.parse_args(["--quick", "--fill", "3"])
     config = make_config(args)
     assert config["fill"] == 3.0
     assert _fill_text(config) == "spacecraft 3 × the image side across (past the frame); "

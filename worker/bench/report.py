@@ -96,8 +96,9 @@ def _fill_text(config: dict[str, Any]) -> str:
     """The spacecraft cases' size when not the default (older bench.json files have none)."""
     from worker.bench.synth import CaseSpec
 
-    fill = config.get("fill", CaseSpec(0.0, 0.0).fill)
-    if fill == CaseSpec(0.0, 0.0).fill:
+    default = CaseSpec(0.0, 0.0).fill
+    fill = config.get("fill", default)
+    if fill == default:
         return ""
     past = " (past the frame)" if fill > 1 else ""
     return f"spacecraft {fill:g} × the image side across{past}; "
