@@ -28,7 +28,9 @@ StoreSource = Callable[[], tuple[redis.Redis, Keys] | None]
 #: Where it finds this process's blob store (None before the app has started).
 BlobSource = Callable[[], CountingBlobStore | None]
 #: Buckets of the HTTP latency histogram, s.
-HTTP_LATENCY_BUCKETS_S = (0.005, 0.01, 0.025, 0.05, 0.1, 0.25, 0.5, 1.0, 2.5, 5.0, 10.0, 30.0, 60.0)
+HTTP_LATENCY_BUCKETS_S = (
+    0.005, 0.01, 0.025, 0.05, 0.075, 0.1, 0.15, 0.2, 0.25, 0.5, 1.0, 2.5, 5.0, 10.0, 30.0, 60.0
+)  # fmt: skip
 
 
 class Metrics:
