@@ -81,3 +81,35 @@ def test_moment_alignment_skips_a_silhouette_the_frame_cuts() -> None:
     session = make_session(np.array([1.6, -0.3, 10.0]))  # the disk's centre at the right edge
     assert not run_moment_alignment(session) and session.history == []
     np.testing.assert_array_equal(session.t, [1.6, -0.3, 10.0])
+
+
+def _pnp_sequence(monkeypatch: pytest.MonkeyPatch, poses: list[np.ndarray]) -> None:
+    """Make the coarse stage's PnP return ``poses`` (translations, R = I) in turn."""
+    from worker.align import coarse
+    from worker.align.pnp import PnPResult
+
+    answers = iter(poses)
+    monkeypatch.setattr(
+        coarse,
+        "_pnp_from",
+        lambda session, view: PnPResult(np.eye(3), next(answers), np.ones(20, bool), 0.5),
+    )
+
+
+@pytest.mark.parametrize("last_is_wrong", [True, False])
+def test_the_last_pnp_pose_is_judged_by_its_render(
+    monkeypatch: pytest.MonkeyPatch, last_is_wrong: bool
+) -> None:
+    # The iterations run out after a good PnP step and a last one that is (or is not) far
+    # off: the last pose, like every other, stays only if its render is not clearly worse.
+    from worker.align.coarse import run_pnp_stage
+
+    good = T_TRUE + np.array([0.02, 0.0, 0.0])
+    last = good + np.array([1.5, 0.0, 0.0]) if last_is_wrong else T_TRUE.copy()
+    _pnp_sequence(monkeypatch, [good, last])
+    session = make_session(T_TRUE + np.array([0.4, 0.2, 0.5]))
+    progress, reason = run_pnp_stage(session, max_iterations=2, stop_step=1e-9)
+    assert progress and reason is None
+    np.testing.assert_array_equal(session.t, good if last_is_wrong else last)
+    assert session.history[-1].accepted is not last_is_wrong
+    assert len(session.history) == (3 if last_is_wrong else 2)

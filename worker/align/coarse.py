@@ -123,6 +123,15 @@ def run_pnp_stage(
         session.record("coarse", res.rms_px**2, step, 0.0, True, int(res.inliers.sum()))
         if step < stop_step:
             return progress, "pnp_converged"
+    if best is not None and progress:
+        # The iterations ran out: the last PnP pose is judged by its render like the others
+        # (unjudged, one from a handful of matches on a small target could end 10° off).
+        view = session.current_view()
+        with session.timed("match"):
+            score = alignment_score(session.ref_grey, view.grey)
+        if _clearly_worse(score, best[1]):
+            session.accept(best[0])
+            session.record("coarse", best[2], 0.0, 0.0, False, 0)
     return progress, None
 
 
