@@ -91,6 +91,39 @@ def test_idempotency_key_replays_the_same_track(client: TestClient, r: redis.Red
     assert_field_error(other, 422, ("header", "Idempotency-Key"))
 
 
+def test_a_track_submission_answers_the_bytes_fastapi_would_serialise(
+    client: TestClient, r: redis.Redis
+) -> None:
+    """As for estimates (``submissions.accepted``): the 202's body, new and replayed, is what
+    FastAPI's pass over the route's response_model would have written."""
+    from fastapi.routing import APIRoute
+
+    from service.resources import track_public
+    from service.routes import tracks
+    from service.store import JobStore
+
+    route = next(
+        rt
+        for rt in tracks.router.routes
+        if isinstance(rt, APIRoute) and rt.endpoint is tracks.create_track
+    )
+    assert route.response_field is not None and route.status_code == 202
+    store = JobStore(r, KEYS, 60, blobs=client.app.state.blobs)  # type: ignore[attr-defined]
+    headers = {"Idempotency-Key": "track-bytes-1"}
+    for replay in (False, True):
+        response = submit_track(client, headers=headers)
+        assert (
+            response.status_code == 202 and response.headers["content-type"] == "application/json"
+        )
+        assert ("idempotent-replayed" in response.headers) is replay
+        record = store.get(response.json()["id"])
+        assert record is not None
+        value, errors = route.response_field.validate(track_public(record), {}, loc=("response",))
+        assert not errors
+        assert response.content == route.response_field.serialize_json(value, by_alias=True)
+        assert response.headers["location"] == f"/v1/tracks/{record.id}"
+
+
 def test_cancel_a_queued_track_takes_it_off_the_queue_and_drops_its_frames(
     client: TestClient, r: redis.Redis
 ) -> None:

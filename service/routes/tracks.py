@@ -24,6 +24,7 @@ from service.store.blobs import artifact_media_type
 from service.submissions import (
     REQUEST_EXAMPLE,
     IdempotencyKey,
+    accepted,
     artifact_response,
     cancel,
     check_idempotency_key,
@@ -148,9 +149,8 @@ def create_track(
     models: ModelStoreDep,
     settings: SettingsDep,
     principal: PrincipalDep,
-    response: Response,
     idempotency_key: IdempotencyKey = None,
-) -> TrackPublic:
+) -> Response:
     check_idempotency_key(idempotency_key)
     body = parse_request(request, settings.max_request_json_bytes, TrackCreate)
     check_model(models, body.model_id)
@@ -180,16 +180,14 @@ def create_track(
         fingerprint,
     )
     if replayed:
-        response.headers["Location"] = track_location(record.id)
-        response.headers["Idempotent-Replayed"] = "true"
-        return track_public(Reaper(jobs, settings.job_max_attempts).reconcile(record))
+        record = Reaper(jobs, settings.job_max_attempts).reconcile(record)
+        return accepted(track_public(record), track_location(record.id), replayed=True)
     log.info(
         "track %s queued for '%s' (model %s, %d frames)",
         *(job_id, owner, body.model_id, len(named)),
         extra={"job_id": job_id, "owner": owner, "model_id": body.model_id},
     )
-    response.headers["Location"] = track_location(job_id)
-    return track_public(record)
+    return accepted(track_public(record), track_location(job_id))
 
 
 @router.get(
