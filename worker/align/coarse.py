@@ -125,8 +125,9 @@ def run_pnp_stage(
             return progress, "pnp_converged"
     if best is not None and progress:
         # The iterations ran out: the last PnP pose is judged by its render like the others
-        # (unjudged, one from a handful of matches on a small target could end 10° off).
-        view = session.current_view()
+        # (unjudged, one from a handful of matches on a small target could end 10° off). The
+        # render is not made current: a kept pose goes on as it did before it was judged.
+        view = session.render_view(session.R, session.t)
         with session.timed("match"):
             score = alignment_score(session.ref_grey, view.grey)
         if _clearly_worse(score, best[1]):
