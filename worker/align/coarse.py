@@ -105,11 +105,8 @@ def run_pnp_stage(
     best: tuple[RenderedView, float, float] | None = None  # view, score, its PnP cost
     for _ in range(min(max_iterations, session.iterations_left)):
         view = session.current_view()
-        with session.timed("match"):
-            score = alignment_score(session.ref_grey, view.grey)
-        if best is not None and _clearly_worse(score, best[1]):
-            session.accept(best[0])
-            session.record("coarse", best[2], 0.0, 0.0, False, 0)
+        score, undone = _judge(session, view, best)
+        if undone:
             return progress, "pnp_converged"
         cost = best[2] if best is not None else np.nan
         best = (view, score, cost)
@@ -127,13 +124,23 @@ def run_pnp_stage(
         # The iterations ran out: the last PnP pose is judged by its render like the others
         # (unjudged, one from a handful of matches on a small target could end 10° off). The
         # render is not made current: a kept pose goes on as it did before it was judged.
-        view = session.render_view(session.R, session.t)
-        with session.timed("match"):
-            score = alignment_score(session.ref_grey, view.grey)
-        if _clearly_worse(score, best[1]):
-            session.accept(best[0])
-            session.record("coarse", best[2], 0.0, 0.0, False, 0)
+        _judge(session, session.render_view(session.R, session.t), best)
     return progress, None
+
+
+def _judge(
+    session: Session, view: RenderedView, best: tuple[RenderedView, float, float] | None
+) -> tuple[float, bool]:
+    """The alignment score of ``view`` (the render at the session's pose), and whether the
+    pose was undone: when the render is clearly worse than ``best``'s (view, score, cost), the
+    session goes back to that view and records the step as rejected."""
+    with session.timed("match"):
+        score = alignment_score(session.ref_grey, view.grey)
+    if best is None or not _clearly_worse(score, best[1]):
+        return score, False
+    session.accept(best[0])
+    session.record("coarse", best[2], 0.0, 0.0, False, 0)
+    return score, True
 
 
 def _clearly_worse(score: float, best: float) -> bool:

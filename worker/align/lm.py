@@ -72,7 +72,7 @@ def weighted_cost(r: Array, w: Array | None = None) -> float:
     sq = r[0::2] ** 2 + r[1::2] ** 2
     if w is None:
         return float(np.mean(sq)) if len(sq) else 0.0
-    return float(np.sum(w * sq) / max(np.sum(w), 1e-12))
+    return _weighted_mean(sq, w)
 
 
 def capped_cost(r: Array, w: Array, cap_px: float) -> float:
@@ -80,7 +80,10 @@ def capped_cost(r: Array, w: Array, cap_px: float) -> float:
     jumps (a face turning into or out of the light, an occlusion) counts as an outlier, not by
     the square of its jump. (Found on an Aura view: two of 320 features moved 1.2–1.6 px when
     a trial tilted the sun, 98 % of the cost's rise, and both trials of a pass were rejected.)"""
-    sq = np.minimum(r[0::2] ** 2 + r[1::2] ** 2, cap_px**2)
+    return _weighted_mean(np.minimum(r[0::2] ** 2 + r[1::2] ** 2, cap_px**2), w)
+
+
+def _weighted_mean(sq: Array, w: Array) -> float:
     return float(np.sum(w * sq) / max(np.sum(w), 1e-12))
 
 
