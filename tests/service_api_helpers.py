@@ -6,14 +6,16 @@ from __future__ import annotations
 
 import io
 import json
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from typing import Any
 
 import pytest
 import redis
 from conftest import settings_on_redis
+from fastapi.routing import APIRoute, APIRouter
 from fastapi.testclient import TestClient
 from PIL import Image
+from pydantic import BaseModel
 from rq import Queue
 
 from service.main import create_app
@@ -112,3 +114,15 @@ def assert_problem(response: Any, status: int, code: str | None = None) -> dict[
     if code is not None:
         assert body["code"] == code, body
     return body  # type: ignore[no-any-return]
+
+
+def response_model_bytes(
+    router: APIRouter, endpoint: Callable[..., Any], resource: BaseModel
+) -> bytes:
+    """What FastAPI's pass over ``endpoint``'s 202 response_model makes of ``resource`` (the
+    bytes a route answering through ``submissions.accepted`` must give)."""
+    route = next(rt for rt in router.routes if isinstance(rt, APIRoute) and rt.endpoint is endpoint)
+    assert route.response_field is not None and route.status_code == 202
+    value, errors = route.response_field.validate(resource, {}, loc=("response",))
+    assert not errors
+    return route.response_field.serialize_json(value, by_alias=True)
