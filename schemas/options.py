@@ -32,6 +32,7 @@ METHOD_PRESETS: dict[str, dict[str, Any]] = {
         "axis_cone_deg": 90.0,
         "robust": False,
         "fit_sun": False,
+        "geometric_pass": False,
         "shading_normals": "file",
         "pyramid": False,
         "window": False,
@@ -130,6 +131,14 @@ class EstimateOptions(BaseModel):
         "one ended at and makes its features, tone match, sharpness match and Jacobian afresh "
         "there (with the fitted sun), instead of keeping those of a render up to a few tenths "
         "of a degree off.",
+    )
+    geometric_pass: bool = Field(
+        default=True,
+        description="After the learned-Jacobian passes, one more LM pass on the last pass's "
+        "features with the Jacobian from the model's geometry (ray casts, as 'fast' uses), "
+        "each step checked by a trial render; kept only when the features fit its pose "
+        "better. Learned rows miss the near-cancellation of a weakly seen direction (a flat "
+        "target's out-of-plane rotation against a lateral shift) and stop short there.",
     )
     fit_sun: bool = Field(
         default=True,

@@ -24,6 +24,7 @@ from worker.align.coarse import (
     run_moment_alignment,
     run_pnp_stage,
 )
+from worker.align.geometric import run_geometric_pass
 from worker.align.learning import apparent_radius_px
 from worker.align.lm import covariance
 from worker.align.pyramid import LevelPlan, level_spp, plan_levels
@@ -253,6 +254,8 @@ def _refine(
         except TooFewFeaturesError:
             break  # the previous pass's pose stands (a pass moves only on accepted steps)
         passes += 1
+    if opts.geometric_pass:
+        run_geometric_pass(session)
     return "max_iterations" if outcome in ("handover", "slow") else outcome
 
 
