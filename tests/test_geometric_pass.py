@@ -90,3 +90,19 @@ def test_a_pass_the_features_fit_worse_is_undone(
     # the way back is the history's last accepted step: its pose is the result's
     back = undone.history[-1]
     assert back.accepted and back.step_norm > 0 and back.pose == undone.pose
+
+
+def test_too_few_geometric_rows_leave_the_learned_pose(
+    demo_model: LoadedModel, view: tuple, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    # (e.g. most features on the silhouette against the sky, where a ray hits nothing)
+    from worker.engine.exceptions import TooFewFeaturesError
+
+    learned, _ = _run(demo_model, view, geometric_pass=False)
+
+    def too_few(*args: object, **kwargs: object) -> None:
+        raise TooFewFeaturesError("only 3 features usable (need 6)")
+
+    monkeypatch.setattr(geometric, "run_lm_stage", too_few)
+    result, _ = _run(demo_model, view, geometric_pass=True)
+    assert result.pose == learned.pose and result.covariance == learned.covariance

@@ -24,6 +24,7 @@ import numpy as np
 from worker.align.refine import run_lm_stage
 from worker.align.session import RenderedView, Session
 from worker.align.tracked import Features
+from worker.engine.exceptions import TooFewFeaturesError
 from worker.engine.posemath import increment_between, step_norm
 
 #: Fraction of the features (the best-fitting ones) whose misfit judges the pass: the rest
@@ -34,19 +35,28 @@ JUDGED_FRACTION = 0.8
 def run_geometric_pass(session: Session) -> bool:
     """Run the geometric pass from the session's pose; returns whether its pose was kept.
 
-    Nothing happens without a learned stage to continue (its features), with the Jacobian
-    already geometric ('fast'), or with no iteration left.
+    Nothing happens without a learned stage of reference features to continue ('klt'), with
+    the Jacobian already geometric ('fast'), or with no iteration left. Too few features with
+    geometric rows (most of them on the silhouette against the sky, where a ray hits nothing)
+    end the pass where it is, like any other stop.
     """
     learned = session.last_stage
     opts = session.options
-    if learned is None or opts.jacobian == "analytic" or session.iterations_left <= 0:
+    if (
+        learned is None
+        or opts.refine_features != "klt"
+        or opts.jacobian == "analytic"
+        or session.iterations_left <= 0
+    ):
         return False
     start_view, start_fit = session.current_view(), session.fit
     state = copy.copy(learned)
     state.learned = None  # the stage makes the geometric rows at its first iteration
     session.options = opts.model_copy(update={"jacobian": "analytic"})
     try:
-        run_lm_stage(session, opts.refine_features, "refine", fit_sun=False, state=state)
+        run_lm_stage(session, "klt", "refine", fit_sun=False, state=state)
+    except TooFewFeaturesError:
+        pass
     finally:
         session.options = opts
     end_view = session.current_view()
