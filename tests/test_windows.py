@@ -129,15 +129,25 @@ def test_an_estimate_with_a_window_is_as_accurate_for_less(variant: str, tmp_pat
                     cx=size / 2 - 0.5, cy=size / 2 - 0.5)  # fmt: skip
     case = make_case(load_model(path), camera, CaseSpec(3.0, 0.03, fill=0.5), seed=1)
     image = encode_png(case.reference)
-    runs = {}
-    for window in (True, False):
-        request = case.request.model_copy(update={"options": EstimateOptions(window=window)})
-        runs[window] = run_estimate(path, image, request)
-    (windowed, artifacts), (whole, _) = runs[True], runs[False]
-    for result in (windowed, whole):
-        assert result.converged, result.reason
-        assert result.errors is not None and result.errors.rotation_deg < 0.3
-    assert windowed.errors.rotation_deg < whole.errors.rotation_deg + 0.05  # type: ignore[union-attr]
-    assert windowed.render_cost < 0.8 * whole.render_cost
+    # Three estimator seeds each: on this view one estimate moves by up to 0.15° with the seed
+    # and with the CPU (0.049° whole against 0.117° windowed for seed 0 on an AMD EPYC VM,
+    # where seeds 1–2 gave 0.014–0.15° either way), so medians are compared, not one pair.
+    errors: dict[bool, list[float]] = {True: [], False: []}
+    costs: dict[bool, list[float]] = {True: [], False: []}
+    for seed in range(3):
+        for window in (True, False):
+            options = EstimateOptions(window=window, seed=seed)
+            result, artifacts = run_estimate(
+                path, image, case.request.model_copy(update={"options": options})
+            )
+            assert result.converged, result.reason
+            assert result.errors is not None and result.errors.rotation_deg < 0.3
+            errors[window].append(result.errors.rotation_deg)
+            costs[window].append(result.render_cost)
+            if window:
+                windowed_artifacts = artifacts
+    assert np.median(errors[True]) < np.median(errors[False]) + 0.05
+    assert sum(costs[True]) < 0.8 * sum(costs[False])
+    artifacts = windowed_artifacts
     for name in ("overlay_final", "difference", "final_render"):
         assert decode_image(artifacts[name], 10**7).shape[:2] == (size, size)
