@@ -8,9 +8,12 @@ import subprocess
 from collections.abc import Iterator
 from contextlib import contextmanager
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import pytest
+
+if TYPE_CHECKING:
+    from worker.engine.meshes import LoadedModel
 
 REPO = Path(__file__).resolve().parents[1]
 SHARED_MODELS = REPO.parent / "shared" / "models"
@@ -47,6 +50,15 @@ def variant() -> str:
     from worker.engine.variant import choose_variant
 
     return choose_variant(os.environ.get("PROXPOSE_VARIANT", "auto"))
+
+
+@pytest.fixture(scope="module")
+def demo_model(tmp_path_factory: pytest.TempPathFactory, variant: str) -> LoadedModel:
+    """The procedural demo satellite, loaded (written once per module that asks for it)."""
+    from worker.demo.satellite import demo_satellite_path
+    from worker.engine.meshes import load_model
+
+    return load_model(demo_satellite_path(tmp_path_factory.mktemp("demo")))
 
 
 def shared_model(name: str) -> Path:

@@ -17,12 +17,10 @@ from schemas import EstimateOptions, EstimateRequest, Lighting
 from worker.align import geometric
 from worker.align.estimator import estimate
 from worker.bench.cases import bench_camera
-from worker.bench.raytrace import Physics
-from worker.bench.references import AMBIENT, IRRADIANCE, _tracer
+from worker.bench.references import ReferenceClass, render_class_reference
 from worker.bench.synth import CaseSpec, draw_sun, draw_truth, pose_json
 from worker.engine.camera import PinholeCamera
-from worker.engine.images import srgb_encode
-from worker.engine.meshes import LoadedModel, load_model
+from worker.engine.meshes import LoadedModel
 from worker.engine.metrics import rotation_error_deg
 from worker.engine.posemath import pose_from_schema
 
@@ -30,13 +28,8 @@ SIZE_PX = 512
 #: A view of the demo satellite whose learned passes end > 1° from the truth (measured
 #: 2026-12-03: 1.25° without the pass, 0.25° with it).
 VIEW_SEED = 102
-
-
-@pytest.fixture(scope="module")
-def demo_model(tmp_path_factory: pytest.TempPathFactory, variant: str) -> LoadedModel:
-    from worker.demo.satellite import demo_satellite_path
-
-    return load_model(demo_satellite_path(tmp_path_factory.mktemp("demo")))
+#: The bench's ray tracer with its default physics, the true sun, an sRGB 8-bit camera.
+EXACT = ReferenceClass("exact", "the ray tracer's default physics, the true sun", False)
 
 
 @pytest.fixture(scope="module")
@@ -47,8 +40,7 @@ def view(demo_model: LoadedModel) -> tuple[np.ndarray, EstimateRequest, np.ndarr
     rng = np.random.default_rng(VIEW_SEED)
     R, t = draw_truth(demo_model, cam, CaseSpec(3.0, 0.02), rng)
     sun = draw_sun(rng)
-    light = _tracer(demo_model, cam).render(R, t, sun, IRRADIANCE, AMBIENT, Physics(), rng)
-    u8 = (np.clip(srgb_encode(np.clip(light, 0.0, 1.0)), 0.0, 1.0) * 255.0 + 0.5).astype(np.uint8)
+    u8 = render_class_reference(demo_model, cam, R, t, sun, EXACT, rng)
     request = EstimateRequest(
         camera=camera,
         initial_pose=pose_json(R, t),

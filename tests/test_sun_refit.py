@@ -16,16 +16,9 @@ from worker.align.estimator import estimate
 from worker.align.sunfit import SunTilt
 from worker.bench.cases import bench_camera
 from worker.bench.synth import Case, CaseSpec, make_case
-from worker.engine.meshes import LoadedModel, load_model
+from worker.engine.meshes import LoadedModel
 
 SIZE_PX = 512
-
-
-@pytest.fixture(scope="module")
-def demo_model(tmp_path_factory: pytest.TempPathFactory, variant: str) -> LoadedModel:
-    from worker.demo.satellite import demo_satellite_path
-
-    return load_model(demo_satellite_path(tmp_path_factory.mktemp("demo")))
 
 
 @pytest.fixture(scope="module")

@@ -148,6 +148,5 @@ def test_an_estimate_with_a_window_is_as_accurate_for_less(variant: str, tmp_pat
                 windowed_artifacts = artifacts
     assert np.median(errors[True]) < np.median(errors[False]) + 0.05
     assert sum(costs[True]) < 0.8 * sum(costs[False])
-    artifacts = windowed_artifacts
     for name in ("overlay_final", "difference", "final_render"):
-        assert decode_image(artifacts[name], 10**7).shape[:2] == (size, size)
+        assert decode_image(windowed_artifacts[name], 10**7).shape[:2] == (size, size)
