@@ -25,8 +25,8 @@ from worker.engine.metrics import rotation_error_deg
 from worker.engine.posemath import pose_from_schema
 
 SIZE_PX = 512
-#: A view of the demo satellite whose learned passes end > 1° from the truth (measured
-#: 2026-12-03: 1.25° without the pass, 0.25° with it).
+#: A view of the demo satellite whose learned passes stop short of the truth (measured
+#: 2026-12-03 with estimator seed 2: 1.25° without the pass, 0.25° with it).
 VIEW_SEED = 102
 #: The bench's ray tracer with its default physics, the true sun, an sRGB 8-bit camera.
 EXACT = ReferenceClass("exact", "the ray tracer's default physics, the true sun", False)
@@ -62,12 +62,23 @@ def _run(model: LoadedModel, view: tuple, geometric_pass: bool):  # noqa: ANN202
 def test_the_geometric_pass_brings_a_stalled_estimate_back(
     demo_model: LoadedModel, view: tuple
 ) -> None:
-    learned, error_learned = _run(demo_model, view, geometric_pass=False)
-    checked, error_checked = _run(demo_model, view, geometric_pass=True)
-    # (the renders' noise differs with the CPU: bounds, not the measured values)
-    assert error_learned > 0.6
-    assert error_checked < 0.5 * error_learned and error_checked < 0.45
-    assert checked.renders > learned.renders  # its trial renders
+    # Where the learned passes stop depends on the estimator's seed and on the CPU's render
+    # noise (seed 2: 1.25° → 0.25° on one VM, 0.49° → 0.35° on another): medians over three
+    # seeds (measured 2026-12-04: learned 0.62°, 0.30°, 0.49°; with the pass 0.13°, 0.10°, 0.35°)
+    reference, request, R_true = view
+    learned, checked = [], []
+    for seed in (0, 1, 2):
+        options = request.options.model_copy(update={"seed": seed})
+        seeded = (reference, request.model_copy(update={"options": options}), R_true)
+        without, error_learned = _run(demo_model, seeded, geometric_pass=False)
+        with_pass, error_checked = _run(demo_model, seeded, geometric_pass=True)
+        assert with_pass.renders > without.renders  # its trial renders
+        learned.append(error_learned)
+        checked.append(error_checked)
+    # (bounds, not the measured values)
+    assert np.median(learned) > 0.3, learned
+    assert np.median(checked) < 0.5 * np.median(learned), (learned, checked)
+    assert np.median(checked) < 0.3, checked
 
 
 def test_a_pass_the_features_fit_worse_is_undone(
