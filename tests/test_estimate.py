@@ -322,3 +322,36 @@ def test_the_coarse_stage_matches_at_full_size_when_its_level_has_too_few_matche
     result = estimate(model, case.reference.astype(np.float32) / 255.0, request).result
     assert result.converged, result.reason
     assert result.errors is not None and result.errors.rotation_deg < MAX_ROTATION_DEG
+
+
+def test_when_no_full_size_pass_finds_features_the_coarse_pass_stands(
+    demo_model: LoadedModel, variant: str, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """Found on a terrain lit by a sun 1.6° above the horizon (`proxpose bench --terrain
+    --sun-elevation 3,12 --cases 4 --seed 5`, started at the truth): the half-size pass ran,
+    the full-size one found too few features. The geometric pass then ran the half-size
+    pass's features on full-size renders and the estimate crashed (a ValueError of array
+    shapes). Now the half-size pass's pose stands, with its fit for the covariance. Here the
+    full-size passes are made to find too few features (the rest is a real estimate)."""
+    from worker.align import estimator
+
+    real_pass = estimator._pass
+    full_size_calls = []
+
+    def no_features_at_full_size(session, fit_sun):  # noqa: ANN001, ANN202
+        if session.level == 1.0:
+            full_size_calls.append(session.last_stage.level)
+            raise TooFewFeaturesError("only 3 features found in common (need 8)")
+        return real_pass(session, fit_sun)
+
+    monkeypatch.setattr(estimator, "_pass", no_features_at_full_size)
+    case = make_case(demo_model, _camera(2 * SIZE_PX), DEMO_SPEC, seed=0)  # a half-size pass
+    result = estimator.estimate(
+        demo_model, case.reference.astype(np.float32) / 255.0, case.request
+    ).result
+    assert full_size_calls == [0.5], "no full-size pass after a half-size one"
+    refine = [h for h in result.history if h.stage == "refine"]
+    assert refine and all(h.stage == "refine" for h in result.history[-len(refine) :])
+    assert result.covariance is not None
+    # a half-size pass's pose: 0.32° off here (the full-size passes end 0.035° off)
+    assert result.errors is not None and result.errors.rotation_deg < 1.0

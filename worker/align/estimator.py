@@ -30,7 +30,7 @@ from worker.align.lm import covariance
 from worker.align.pyramid import LevelPlan, level_spp, plan_levels
 from worker.align.refine import Outcome, run_lm_stage
 from worker.align.renderers import get_renderer, lighting_spec, texture_level
-from worker.align.session import CancelCheck, ProgressCallback, RenderedView, Session
+from worker.align.session import CancelCheck, LinearFit, ProgressCallback, RenderedView, Session
 from worker.align.shading import RendererFor, choose_shading
 from worker.engine.camera import PinholeCamera
 from worker.engine.exceptions import EmptyRenderError, TooFewFeaturesError, UnlitRenderError
@@ -243,6 +243,8 @@ def _refine(
     while session.level < 1.0 and outcome == "slow" and extra < MAX_EXTRA_PASSES:
         outcome, extra = _pass(session, opts.fit_sun), extra + 1
     fit_sun = opts.fit_sun and (session.level == 1.0 or refit_sun(session))
+    # set_level drops the fit; kept, in full-resolution px, for when no full-size pass runs
+    coarse_fit = _at_full_size(session.fit, session.level)
     session.set_level(1.0)
     passes = 1
     while session.iterations_left > 0 and (
@@ -252,11 +254,23 @@ def _refine(
         try:
             outcome = _pass(session, fit_sun)
         except TooFewFeaturesError:
-            break  # the previous pass's pose stands (a pass moves only on accepted steps)
+            # The previous pass's pose stands (a pass moves only on accepted steps), and with
+            # it that pass's fit for the covariance when it was the coarse one.
+            if session.fit is None:
+                session.fit = coarse_fit
+            break
         passes += 1
     if opts.geometric_pass:
         run_geometric_pass(session)
     return "max_iterations" if outcome in ("handover", "slow") else outcome
+
+
+def _at_full_size(fit: LinearFit | None, level: float) -> LinearFit | None:
+    """``fit``, made at ``level``, with its rows, residuals and positions in full-resolution
+    px (the covariance does not change; the reported RMS residual does)."""
+    if fit is None or level == 1.0:
+        return fit
+    return LinearFit(fit.J / level, fit.r / level, fit.w, fit.x / level)
 
 
 def refit_sun(session: Session) -> bool:

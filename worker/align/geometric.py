@@ -36,7 +36,10 @@ def run_geometric_pass(session: Session) -> bool:
     """Run the geometric pass from the session's pose; returns whether its pose was kept.
 
     Nothing happens without a learned stage of reference features to continue ('klt'), with
-    the Jacobian already geometric ('fast'), or with no iteration left. Too few features with
+    the Jacobian already geometric ('fast'), with no iteration left, or when that stage's
+    features were made at another level than the session's (the full-resolution passes found
+    too few features and the coarse pass's pose stands: its features' pixels are not the
+    renders'). Too few features with
     geometric rows (most of them on the silhouette against the sky, where a ray hits nothing)
     end the pass where it is, like any other stop.
     """
@@ -47,6 +50,7 @@ def run_geometric_pass(session: Session) -> bool:
         or opts.refine_features != "klt"
         or opts.jacobian == "analytic"
         or session.iterations_left <= 0
+        or learned.level != session.level
     ):
         return False
     start_view, start_fit = session.current_view(), session.fit

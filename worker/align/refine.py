@@ -80,6 +80,7 @@ class StageState:
     learned_at: RenderedView | None = None  # the view whose pose the Jacobian was learned at
     inliers: NDArray[np.bool_] | None = None  # pose-consistent features (RANSAC)
     sun_J: Array | None = None  # (2k, 2) px per radian of sun tilt (see worker.align.sunfit)
+    level: float = 1.0  # the session level the features were made at (their pixel scale)
 
 
 def _new_state(session: Session, mode: str, view: RenderedView) -> StageState:
@@ -93,7 +94,7 @@ def _new_state(session: Session, mode: str, view: RenderedView) -> StageState:
             f"only {int(ok.sum())} features found in common between the reference and the "
             f"render (need {session.options.min_features})"
         )
-    return StageState(feats, h, ok)
+    return StageState(feats, h, ok, level=view.level)
 
 
 def _weights(

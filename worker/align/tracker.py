@@ -312,7 +312,7 @@ class Tracker:
         h, ok = features.measure(view, (st.h + motion)[keep])
         rows = np.repeat(keep, 2)
         learned = LearnedJacobian(st.learned.J[rows], st.learned.ok[keep], st.learned.B, 0)
-        return StageState(features, h, ok & st.ok[keep], learned, learned_at=view)
+        return StageState(features, h, ok & st.ok[keep], learned, learned_at=view, level=view.level)
 
     def _keep(self, session: Session, memory: _Memory) -> bool:
         """Remember this frame's state for the next; learn the Jacobian afresh (with new
@@ -334,7 +334,7 @@ class Tracker:
         features = TrackedFeatures(session, view)
         h, ok = features.measure(view, None)
         learned = learn_at_pose(session, h, features.feature_normals)
-        return StageState(features, h, ok, learned, learned_at=view)
+        return StageState(features, h, ok, learned, learned_at=view, level=view.level)
 
     def _recover(
         self, image: FloatImage, guess: Pose, truth: Pose | None, index: int, start: float
