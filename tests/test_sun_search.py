@@ -16,7 +16,7 @@ import pytest
 
 from worker.align import sunsearch
 from worker.align.session import RenderedView, Session
-from worker.align.sunsearch import lit_mask, pattern_score
+from worker.align.sunsearch import lit_mask, pattern_score, shifted_pattern_score
 from worker.bench.cases import bench_camera
 from worker.bench.synth import Case, CaseSpec, pose_json
 from worker.bench.terrain import make_terrain_case
@@ -44,20 +44,23 @@ def _angle_deg(a: np.ndarray, b: np.ndarray) -> float:
 def _searched_suns(
     model: LoadedModel, case: Case, monkeypatch: pytest.MonkeyPatch
 ) -> list[tuple[float, float, bool, int]]:
-    """(° off the true sun before, after, moved, renders made) of the search an estimate runs
-    (the estimate is stopped there: the refinement after it is not under test)."""
+    """(° off the true sun before, after, moved, renders made) of each search an estimate
+    started at the truth runs: the one before the coarse stage, then the one after it (the
+    estimate is stopped there: the refinement is not under test)."""
     from worker.align.estimator import estimate
 
     found: list[tuple[float, float, bool, int]] = []
     search = sunsearch.search_sun
 
-    def spy(session: Session) -> bool:
+    def spy(session: Session, aligned: bool = True) -> bool:
         before = _angle_deg(np.array(session.renderer.lighting.sun_direction), case.sun_true)
         renders = session.renders
-        moved = search(session)
+        moved = search(session, aligned)
         after = _angle_deg(np.array(session.renderer.lighting.sun_direction), case.sun_true)
         found.append((before, after, moved, session.renders - renders))
-        raise _Searched
+        if aligned:
+            raise _Searched
+        return moved
 
     monkeypatch.setattr(sunsearch, "search_sun", spy)
     request = case.request.model_copy(update={"initial_pose": pose_json(case.R_true, case.t_true)})
@@ -73,10 +76,12 @@ def test_a_low_sun_is_found_from_the_lit_pattern(
         terrain, bench_camera(SIDE_PX), CaseSpec(0.0, 0.0), 11, sun_elevation_deg=(6, 9)
     )
     found = _searched_suns(terrain, case, monkeypatch)
-    before, after, moved, renders = found[0]
+    assert len(found) == 2
+    (before, after, moved, renders), (_, last, _, renders_after) = found
     assert before == pytest.approx(3.0, abs=0.01)  # the bench's request is 3° off
-    assert moved and after < 1.0
-    assert renders <= sunsearch.MAX_RENDERS + 4
+    assert moved and after < 1.0 and last < 1.0
+    assert renders <= sunsearch.UNALIGNED_MAX_RENDERS + 4
+    assert renders_after <= sunsearch.MAX_RENDERS + 4
 
 
 def test_a_sun_below_the_horizon_at_the_initial_pose_is_tilted_until_it_lights(
@@ -133,7 +138,7 @@ def test_a_target_on_the_sky_is_left_to_the_features(
     model = load_model(demo_satellite_path(tmp_path_factory.mktemp("demo")))
     case = make_case(model, bench_camera(256), CaseSpec(0.0, 0.0), seed=0, reference="sun")
     found = _searched_suns(model, case, monkeypatch)
-    assert [(moved, renders) for _, _, moved, renders in found] == [(False, 0)]
+    assert [(moved, renders) for _, _, moved, renders in found] == [(False, 0), (False, 0)]
 
 
 def test_the_pattern_score_ignores_tone_and_sees_the_pattern() -> None:
@@ -151,3 +156,54 @@ def test_the_pattern_score_ignores_tone_and_sees_the_pattern() -> None:
     assert pattern_score(render, moved) < pattern_score(render, reference) - 0.3
     # a render with nothing lit, or all of it, gives no score
     assert pattern_score(np.full((96, 96), 0.5), reference) == -1.0
+    # compared at its best shift (within the one allowed) a pattern moved by 15 px scores
+    # nearly as the aligned one does; a pattern that is not the render's does not
+    shifted = np.full_like(reference, float(np.median(reference)))
+    shifted[:, 15:] = reference[:, :-15]
+    assert shifted_pattern_score(render, shifted, 20) > 0.9  # part of a block left the frame
+    assert shifted_pattern_score(render, shifted, 20) > pattern_score(render, shifted) + 0.3
+    other = np.full((96, 96), 0.05)
+    other[10:30, 60:90] = other[50:90, 5:40] = 0.8
+    assert shifted_pattern_score(render, other, 20) < 0.6
+
+
+def test_before_the_coarse_stage_the_sun_is_found_wherever_the_pose_puts_the_pattern(
+    terrain: LoadedModel, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """A start 5° and 3 % of the range off at a 3–6° sun: the pose's error tilts the sun
+    against the ground by as much again, and the request's sun lights other ground than the
+    reference shows lit. The search before the coarse stage (each pattern compared at its best
+    image shift) brings the sun, as it falls on the model, within a degree of the true one; it
+    is held there while the coarse stage moves the pose (the search after it finds the same
+    sun on the model), and the coarse stage lands close to the truth."""
+    from worker.align.estimator import estimate
+    from worker.engine.metrics import rotation_error_deg
+
+    case = make_terrain_case(
+        terrain, bench_camera(SIDE_PX), CaseSpec(5.0, 0.03), 2, sun_elevation_deg=(3, 6)
+    )
+    true_sun = case.R_true.T @ case.sun_true  # model frame
+    seen: list[tuple[bool, float, float, float]] = []
+    search = sunsearch.search_sun
+
+    def on_model(session: Session) -> np.ndarray:
+        return np.asarray(session.R).T @ np.array(session.renderer.lighting.sun_direction)
+
+    def spy(session: Session, aligned: bool = True) -> bool:
+        before = _angle_deg(on_model(session), true_sun)
+        moved = search(session, aligned)
+        after = _angle_deg(on_model(session), true_sun)
+        seen.append((aligned, before, after, rotation_error_deg(case.R_true, session.R)))
+        if aligned:
+            raise _Searched
+        return moved
+
+    monkeypatch.setattr(sunsearch, "search_sun", spy)
+    with pytest.raises(_Searched):
+        estimate(terrain, case.reference.astype(np.float32) / 255.0, case.request)
+    (first, before, found, start_error), (second, held, _, coarse_error) = seen
+    assert not first and second
+    assert start_error > 4.0 and before > 3.0  # measured: 5.0° and 3.6°
+    assert found < 1.0  # measured: 0.52°
+    assert held == pytest.approx(found, abs=0.01)
+    assert coarse_error < 0.5  # measured: 0.07°

@@ -146,8 +146,6 @@ def target_px(model: LoadedModel, camera: PinholeCamera, R: np.ndarray, t: np.nd
 
 def _run_pipeline(session: Session, renderer_for: RendererFor, plan: LevelPlan) -> StopReason:
     opts = session.options
-    coarse_ok = False
-    pnp_reason: StopReason | None = None
     if opts.refine_features != "none":
         session.set_level(plan.coarse)
     if opts.coarse == "pnp":
@@ -157,6 +155,32 @@ def _run_pipeline(session: Session, renderer_for: RendererFor, plan: LevelPlan) 
         # over a frame-filling scene the pose's error can put a low sun below the horizon
         sunsearch.light_up(session, lambda view: is_lit(view, session.renderer.lighting))
     check_lit(session.current_view(), session.renderer.lighting)
+    try:
+        if fit_sun:
+            # over a frame-filling scene at a low sun, the pattern of what is lit, wherever
+            # the pose's error puts it, says where the sun is (held while the coarse stage
+            # moves the pose)
+            sunsearch.search_sun_before_coarse(session)
+        reason = _coarse(session, plan)
+    finally:
+        sunsearch.release_sun(session)
+    if isinstance(reason, str):
+        return reason
+    if fit_sun:
+        # over a frame-filling scene at a low sun, what is lit says where the sun is
+        sunsearch.search_sun(session)
+    # the coarse stage's last render (of the whole image), to place the refinement's window
+    window_from = session.current if session.current is not None else session.current_view()
+    session.stage_spp = None  # the refinement renders with options.spp
+    return _refine(session, renderer_for, plan, window_from)
+
+
+def _coarse(session: Session, plan: LevelPlan) -> StopReason | None:
+    """The coarse stage (moments, then PnP; or LM on matches); a stop reason when PnP alone is
+    the method (nothing follows), else None."""
+    opts = session.options
+    coarse_ok = False
+    pnp_reason: StopReason | None = None
     if opts.coarse == "pnp":
         run_moment_alignment(session)
         alone = opts.refine_features == "none"
@@ -176,13 +200,7 @@ def _run_pipeline(session: Session, renderer_for: RendererFor, plan: LevelPlan) 
             return pnp_reason or "max_iterations"
     if opts.refine_features == "klt" and not coarse_ok:
         run_lm_stage(session, "matches", "coarse", handover_step=COARSE_HANDOVER_STEP)
-    if fit_sun:
-        # over a frame-filling scene at a low sun, what is lit says where the sun is
-        sunsearch.search_sun(session)
-    # the coarse stage's last render (of the whole image), to place the refinement's window
-    window_from = session.current if session.current is not None else session.current_view()
-    session.stage_spp = None  # the refinement renders with options.spp
-    return _refine(session, renderer_for, plan, window_from)
+    return None
 
 
 def _coarse_spp(session: Session) -> None:

@@ -11,13 +11,22 @@ pixels by rank (any exposure, gamma or reflectance law keeps the order of the le
 matters: lit above shadow), and a compass search over the tilt maximises the correlation of the
 two (slightly blurred) masks. The refinement's sun fit starts from the result.
 
-Measured on the bench's terrain cases (sun 3° off): at a 4–10° sun the search brought it within
-0.16–0.6° of the true one; the worst fractal case at a 5–15° sun went from 0.14° to 0.04°.
+The search runs twice. Before the coarse stage the pose is still a few degrees off, so the
+reference's pattern lies tens of pixels from the render's: each pattern is compared at the
+image shift that aligns it best (shifted_pattern_score), and the sun found is held fixed on the
+model while the coarse stage moves the pose (search_sun_before_coarse). After the coarse stage
+the patterns are compared where they are.
+
+Measured on the bench's terrain cases (sun 3° off): at a 4–10° sun the search after the coarse
+stage brought it within 0.16–0.6° of the true one; the worst fractal case at a 5–15° sun went
+from 0.14° to 0.04°. The search before it: see the README's terrain section.
 """
 
 from __future__ import annotations
 
 from collections.abc import Callable
+from dataclasses import replace
+from functools import partial
 
 import cv2
 import numpy as np
@@ -45,6 +54,12 @@ MIN_COVERAGE = 0.95
 MIN_SHADOW_FRACTION = 0.25
 #: Smallest gain of the correlation that moves the sun.
 MIN_GAIN = 0.01
+#: Before the coarse stage: how far the reference's lit pattern may lie from the render's, a
+#: fraction of the image's shorter side (an initial pose a few degrees off moves terrain seen
+#: from 600 m by tens of pixels), and the renders that search may make (the sun may be the
+#: request's error plus the pose's away, so it walks further).
+MAX_SHIFT_FRACTION = 0.25
+UNALIGNED_MAX_RENDERS = 40
 #: Tilts of the sun from the request's (degrees; eight directions each, the smallest that
 #: lights anything wins) tried when the render at the initial pose shows no sunlit ground.
 LIGHT_UP_TILTS_DEG = (2.0, 4.0, 6.0)
@@ -58,16 +73,41 @@ def lit_mask(grey: Array) -> tuple[NDArray[np.bool_], float]:
     return mask, float(mask.mean())
 
 
-def pattern_score(render_grey: Array, ref_smooth: Array) -> float:
-    """Correlation of the render's lit mask with the reference's brightest pixels of the
-    same share (blurred by MASK_BLUR_PX)."""
+def _masks(render_grey: Array, ref_smooth: Array) -> tuple[Array, Array] | None:
+    """The render's lit mask and the reference's brightest pixels of the same share, blurred
+    by MASK_BLUR_PX (None when the render is all lit or all dark)."""
     mask, lit = lit_mask(render_grey)
     if not 0.0 < lit < 1.0:
-        return -1.0
+        return None
     ref_mask = ref_smooth > np.quantile(ref_smooth, 1.0 - lit)
     a = cv2.GaussianBlur(mask.astype(np.float32), (0, 0), MASK_BLUR_PX)
     b = cv2.GaussianBlur(ref_mask.astype(np.float32), (0, 0), MASK_BLUR_PX)
-    return zncc(a, b)
+    return a, b
+
+
+def pattern_score(render_grey: Array, ref_smooth: Array) -> float:
+    """Correlation of the render's lit mask with the reference's brightest pixels of the
+    same share (blurred by MASK_BLUR_PX)."""
+    masks = _masks(render_grey, ref_smooth)
+    return -1.0 if masks is None else zncc(*masks)
+
+
+def shifted_pattern_score(render_grey: Array, ref_smooth: Array, max_shift_px: int) -> float:
+    """pattern_score at the image shift (within ``max_shift_px`` each way) that aligns the two
+    masks best: the pattern's likeness whatever the pose's error moves it by. The correlation
+    is normalised over the whole masks, so a larger shift (less overlap) scores lower."""
+    masks = _masks(render_grey, ref_smooth)
+    if masks is None:
+        return -1.0
+    a, b = (m - m.mean() for m in masks)
+    h, w = a.shape
+    shape = (2 * h, 2 * w)  # zero-padded: no wrap-around
+    corr = np.fft.irfft2(np.fft.rfft2(a, shape) * np.conj(np.fft.rfft2(b, shape)), shape)
+    m = int(max_shift_px)
+    rows = np.r_[0 : m + 1, shape[0] - m : shape[0]]
+    cols = np.r_[0 : m + 1, shape[1] - m : shape[1]]
+    best = float(corr[np.ix_(rows, cols)].max())
+    return best / max(float(np.sqrt(np.sum(a * a) * np.sum(b * b))), 1e-12)
 
 
 def _fills_frame(session: Session) -> bool:
@@ -81,11 +121,13 @@ def _smoothed_reference(session: Session) -> NDArray[np.float32]:
     return cv2.GaussianBlur(session.ref_grey.astype(np.float32), (0, 0), 1.0)
 
 
-def search_sun(session: Session) -> bool:
+def search_sun(session: Session, aligned: bool = True) -> bool:
     """Tilt the renderer's sun to the one whose lit pattern best matches the reference's, at
     the session's pose and level; returns whether it moved. Runs only for a scene that fills
     the frame (MIN_COVERAGE) and whose render at the current sun is at least
-    MIN_SHADOW_FRACTION in shadow."""
+    MIN_SHADOW_FRACTION in shadow. ``aligned=False`` (before the coarse stage, the pose still
+    off): each pattern is compared at the image shift that aligns it best
+    (shifted_pattern_score)."""
     if not _fills_frame(session):
         return False
     view = session.current_view()
@@ -94,21 +136,27 @@ def search_sun(session: Session) -> bool:
     ref = _smoothed_reference(session)
     if ref.shape != view.grey.shape:
         return False
+    if aligned:
+        score_of, max_renders = pattern_score, MAX_RENDERS
+    else:
+        shift = int(MAX_SHIFT_FRACTION * min(ref.shape))
+        score_of = partial(shifted_pattern_score, max_shift_px=shift)
+        max_renders = UNALIGNED_MAX_RENDERS
     sun = SunTilt(session)
     start = sun.ab.copy()
-    best_ab, best = start, pattern_score(view.grey, ref)
+    best_ab, best = start, score_of(view.grey, ref)
     first = best
     renders = 0
     for step_deg in STEPS_DEG:
         step = np.tan(np.radians(step_deg))
         moved = True
-        while moved and renders < MAX_RENDERS:
+        while moved and renders < max_renders:
             moved = False
             centre = best_ab
             for d in ((step, 0.0), (-step, 0.0), (0.0, step), (0.0, -step)):
                 ab = sun.clip(centre + np.array(d))
                 sun.set(ab)
-                score = pattern_score(session.render_view(session.R, session.t).grey, ref)
+                score = score_of(session.render_view(session.R, session.t).grey, ref)
                 renders += 1
                 if score > best:
                     best_ab, best, moved = ab, score, True
@@ -118,6 +166,36 @@ def search_sun(session: Session) -> bool:
     sun.set(best_ab)
     session.current = None  # rendered with the old sun
     return True
+
+
+def search_sun_before_coarse(session: Session) -> bool:
+    """The sun searched at the initial pose, each pattern compared at its best image shift,
+    then held fixed in the model frame (Renderer.hold_sun) while the coarse stage moves the
+    pose; returns whether it moved (release_sun lets it go).
+
+    Why held: the sun is given in the camera frame, so the initial pose's error tilts it
+    against the ground by as much. Over terrain at a 3–6° sun a start 5° off put it below
+    the horizon, and the sun the search finds there (the camera-frame sun that lights the
+    reference's pattern at that pose) lights that pattern only at that attitude: once PnP
+    corrects the pose it would tilt away again, with the pose's correction.
+    """
+    if not search_sun(session, aligned=False):
+        return False
+    sun = np.asarray(session.renderer.lighting.sun_direction, dtype=np.float64)
+    session.renderer.hold_sun(np.asarray(session.R).T @ sun)
+    return True
+
+
+def release_sun(session: Session) -> None:
+    """Let a sun held by search_sun_before_coarse turn with the camera again, from the
+    session's pose (whose render keeps its lighting)."""
+    renderer = session.renderer
+    held = renderer.held_sun
+    if held is None:
+        return
+    sun = np.asarray(session.R) @ held
+    sun = tuple(float(x) for x in sun / np.linalg.norm(sun))
+    renderer.set_lighting(replace(renderer.lighting, sun_direction=sun))
 
 
 def light_up(session: Session, lit: Callable[[RenderedView], bool]) -> bool:

@@ -15,7 +15,7 @@ from __future__ import annotations
 import os
 import time
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -69,6 +69,11 @@ class RenderStats:
     renders: int = 0
     seconds: float = 0.0
     by_scale: dict[float, int] = field(default_factory=dict)
+
+
+def _unit_tuple(v: Array) -> tuple[float, float, float]:
+    u = np.asarray(v, dtype=np.float64) / max(float(np.linalg.norm(v)), 1e-12)
+    return (float(u[0]), float(u[1]), float(u[2]))
 
 
 def frame_with_z(d: ArrayLike) -> Array:
@@ -134,6 +139,7 @@ class Renderer:
         self.stats = RenderStats()
         self._lighting = lighting
         self._R = np.eye(3)  # the attitude of the last pose: the sun turns with the camera
+        self._held_sun: Array | None = None  # towards the sun, model frame (see hold_sun)
         try:
             self.scene = mi.load_dict(self.scene_dict())
         except Exception as exc:
@@ -231,8 +237,27 @@ class Renderer:
         for i in range(len(self._sensors)) if sensor is None else (sensor,):
             self._put_transform(f"sensor{i}.to_world", cam2model)
         self._R = R
+        if self._held_sun is not None:  # the camera-frame sun that keeps the held one
+            self._lighting = replace(self._lighting, sun_direction=_unit_tuple(R @ self._held_sun))
         self._update_sun()
         self.params.update()
+
+    def hold_sun(self, sun_model: ArrayLike | None) -> None:
+        """Keep the sun fixed in the model frame (``sun_model``, towards the sun) whatever the
+        pose, the lighting's camera-frame direction following each pose; None lets it turn with
+        the camera again from the direction of the last pose."""
+        self._held_sun = None if sun_model is None else np.asarray(sun_model, dtype=np.float64)
+        if self._held_sun is not None:
+            self._lighting = replace(
+                self._lighting, sun_direction=_unit_tuple(self._R @ self._held_sun)
+            )
+            self._update_sun()
+            self.params.update()
+
+    @property
+    def held_sun(self) -> Array | None:
+        """The sun held fixed in the model frame, if any (see hold_sun)."""
+        return self._held_sun
 
     @property
     def lighting(self) -> LightingSpec:
@@ -240,6 +265,9 @@ class Renderer:
         return self._lighting
 
     def set_lighting(self, lighting: LightingSpec) -> None:
+        """Render with ``lighting`` from now on (its sun in the camera frame; a held sun is
+        let go)."""
+        self._held_sun = None
         self._lighting = lighting
         self.params["sun.irradiance.value"] = lighting.sun_irradiance
         self.params["ambient.radiance.value"] = lighting.ambient
