@@ -6,8 +6,9 @@ import numpy as np
 import pytest
 
 from worker.engine.camera import PinholeCamera
+from worker.engine.kernels import plain_render, use_frozen
 from worker.engine.meshes import LoadedModel, MeshPart
-from worker.engine.renderer import LightingSpec, Renderer, _plain_render, use_frozen
+from worker.engine.renderer import LightingSpec, Renderer
 
 CAMERA = PinholeCamera(64, 64, 80.0, 80.0, 31.5, 31.5)
 LIGHT = LightingSpec((0.4, -0.5, -0.77), 3.0, 0.02)
@@ -50,5 +51,5 @@ def test_frozen_renders_match_plain_ones_and_a_new_seed_records_nothing(variant:
     replayed = {seed: image(frozen, seed) for seed in (2, 7, 1)}
     assert frozen.frozen.n_recordings == recorded  # type: ignore[attr-defined]
     for seed, frozen_image in replayed.items():
-        assert np.array_equal(frozen_image, image(_plain_render, seed)), seed
+        assert np.array_equal(frozen_image, image(plain_render, seed)), seed
     assert not np.array_equal(replayed[2], replayed[7])  # the seed reaches the sampler

@@ -15,17 +15,10 @@ from typing import Any
 import numpy as np
 
 from worker.engine.camera import PinholeCamera
+from worker.engine.kernels import frozen_render, plain_render, use_frozen
 from worker.engine.meshes import LoadedModel
 from worker.engine.posemath import apply_increment, rotvec_to_matrix
-from worker.engine.renderer import (
-    CV_FROM_MI,
-    LightingSpec,
-    Renderer,
-    _frozen_render,
-    _plain_render,
-    scalar_transform,
-    use_frozen,
-)
+from worker.engine.renderer import CV_FROM_MI, LightingSpec, Renderer, scalar_transform
 
 #: Timed repetitions of each variant (after two warm-up runs).
 REPEATS = 3
@@ -86,7 +79,7 @@ def _compare_at(
 
     renderer = Renderer(model, camera, LightingSpec((0.3, -0.5, -0.81), 3.0, 0.02), spp=spp)
     (scene, params), keys = _batch_scene(renderer, len(poses))
-    render_batch = _frozen_render() if use_frozen(mi.variant()) else _plain_render
+    render_batch = frozen_render() if use_frozen(mi.variant()) else plain_render
 
     def separate() -> None:
         for i, (Ri, ti) in enumerate(poses):

@@ -12,9 +12,7 @@ moving it recompiles nothing (changing a film's crop offset would).
 
 from __future__ import annotations
 
-import os
 import time
-from collections.abc import Callable
 from dataclasses import dataclass, field, replace
 
 import numpy as np
@@ -22,6 +20,7 @@ from numpy.typing import ArrayLike, NDArray
 
 from worker.engine.camera import PinholeCamera, RenderPlan, plan_render, warp_to_target
 from worker.engine.exceptions import RenderError
+from worker.engine.kernels import frozen_render, plain_render, use_frozen
 from worker.engine.meshes import LoadedModel
 from worker.engine.scene_meshes import scene_mesh
 
@@ -146,7 +145,7 @@ class Renderer:
             raise RenderError(f"cannot build the Mitsuba scene: {exc}") from exc
         self.params = mi.traverse(self.scene)
         frozen = use_frozen(mi.variant())
-        self._render_fn = _frozen_render(len(self._sensors)) if frozen else _plain_render
+        self._render_fn = frozen_render(len(self._sensors)) if frozen else plain_render
         self._sensor_index = {key: i for i, (key, _) in enumerate(self._sensors)}
         self.set_lighting(lighting)
 
@@ -360,41 +359,6 @@ class Renderer:
         us, vs = np.linspace(0, cam.width - 1, grid), np.linspace(0, cam.height - 1, grid)
         uv = np.stack(np.meshgrid(us, vs), axis=-1).reshape(-1, 2)
         return float(self.raycast(R, t, uv)[1].mean())
-
-
-#: Frozen-render recordings per sensor before Dr.Jit warns (per spp; again after others' first).
-RECORDINGS_PER_SENSOR = 6
-
-
-def use_frozen(variant: str) -> bool:
-    """Whether renders replay a recorded kernel (JIT variants, unless PROXPOSE_FROZEN=0)."""
-    return not variant.startswith("scalar") and os.environ.get("PROXPOSE_FROZEN", "1") != "0"
-
-
-def _plain_render(scene: object, sensor: int, spp: int, seed: int) -> object:
-    import mitsuba as mi
-
-    return mi.render(scene, sensor=sensor, spp=spp, seed=seed)
-
-
-def _frozen_render(sensors: int = 1) -> Callable[[object, int, int, int], object]:
-    """``mi.render`` under ``dr.freeze``: the first calls per (sensor, spp) record the kernel
-    launches, later ones replay them with the scene's current parameters (pose, lights, the
-    seed, which goes in opaque: as a literal, another seed recorded every render again) and skip
-    tracing, which grows with every part and texture of a model (66 of a 95 ms render for the
-    40-part demo satellite); the output is identical. ``call.frozen``: the frozen function."""
-    import drjit as dr
-    import mitsuba as mi
-
-    @dr.freeze(warn_after=RECORDINGS_PER_SENSOR * sensors)
-    def render(scene: object, sensor: int, spp: int, seed: object) -> object:
-        return mi.render(scene, sensor=sensor, spp=spp, seed=seed)
-
-    def call(scene: object, sensor: int, spp: int, seed: int) -> object:
-        return render(scene, sensor, spp, dr.opaque(mi.UInt32, seed))
-
-    call.frozen = render  # type: ignore[attr-defined]
-    return call
 
 
 def _intersect(scene: object, origin: Array, dirs: Array) -> tuple[NDArray[np.bool_], Array]:
