@@ -164,7 +164,7 @@ def _run_pipeline(session: Session, renderer_for: RendererFor, plan: LevelPlan) 
         reason = _coarse(session, plan)
     finally:
         sunsearch.release_sun(session)
-    if isinstance(reason, str):
+    if reason is not None:  # PnP alone: nothing follows the coarse stage
         return reason
     if fit_sun:
         # over a frame-filling scene at a low sun, what is lit says where the sun is

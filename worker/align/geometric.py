@@ -39,9 +39,8 @@ def run_geometric_pass(session: Session) -> bool:
     the Jacobian already geometric ('fast'), with no iteration left, or when that stage's
     features were made at another level than the session's (the full-resolution passes found
     too few features and the coarse pass's pose stands: its features' pixels are not the
-    renders'). Too few features with
-    geometric rows (most of them on the silhouette against the sky, where a ray hits nothing)
-    end the pass where it is, like any other stop.
+    renders'). Too few features with geometric rows (most of them on the silhouette against
+    the sky, where a ray hits nothing) end the pass where it is, like any other stop.
     """
     learned = session.last_stage
     opts = session.options

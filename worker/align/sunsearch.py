@@ -25,7 +25,6 @@ from 0.14° to 0.04°. The search before it: see the README's terrain section.
 from __future__ import annotations
 
 from collections.abc import Callable
-from dataclasses import replace
 from functools import partial
 
 import cv2
@@ -189,13 +188,7 @@ def search_sun_before_coarse(session: Session) -> bool:
 def release_sun(session: Session) -> None:
     """Let a sun held by search_sun_before_coarse turn with the camera again, from the
     session's pose (whose render keeps its lighting)."""
-    renderer = session.renderer
-    held = renderer.held_sun
-    if held is None:
-        return
-    sun = np.asarray(session.R) @ held
-    sun = tuple(float(x) for x in sun / np.linalg.norm(sun))
-    renderer.set_lighting(replace(renderer.lighting, sun_direction=sun))
+    session.renderer.release_sun(session.R)
 
 
 def light_up(session: Session, lit: Callable[[RenderedView], bool]) -> bool:

@@ -236,27 +236,32 @@ class Renderer:
         for i in range(len(self._sensors)) if sensor is None else (sensor,):
             self._put_transform(f"sensor{i}.to_world", cam2model)
         self._R = R
-        if self._held_sun is not None:  # the camera-frame sun that keeps the held one
-            self._lighting = replace(self._lighting, sun_direction=_unit_tuple(R @ self._held_sun))
+        if self._held_sun is not None:
+            self._sun_held_at(R)
         self._update_sun()
         self.params.update()
 
-    def hold_sun(self, sun_model: ArrayLike | None) -> None:
+    def hold_sun(self, sun_model: ArrayLike) -> None:
         """Keep the sun fixed in the model frame (``sun_model``, towards the sun) whatever the
-        pose, the lighting's camera-frame direction following each pose; None lets it turn with
-        the camera again from the direction of the last pose."""
-        self._held_sun = None if sun_model is None else np.asarray(sun_model, dtype=np.float64)
-        if self._held_sun is not None:
-            self._lighting = replace(
-                self._lighting, sun_direction=_unit_tuple(self._R @ self._held_sun)
-            )
-            self._update_sun()
-            self.params.update()
+        pose, the lighting's camera-frame direction following each pose (until release_sun or
+        set_lighting)."""
+        self._held_sun = np.asarray(sun_model, dtype=np.float64)
+        self._sun_held_at(self._R)
+        self._update_sun()
+        self.params.update()
 
-    @property
-    def held_sun(self) -> Array | None:
-        """The sun held fixed in the model frame, if any (see hold_sun)."""
-        return self._held_sun
+    def release_sun(self, R: ArrayLike) -> None:
+        """Let a held sun turn with the camera again, from the direction it has at attitude
+        ``R``; nothing when no sun is held."""
+        if self._held_sun is None:
+            return
+        self._sun_held_at(np.asarray(R, dtype=np.float64))
+        self.set_lighting(self._lighting)
+
+    def _sun_held_at(self, R: Array) -> None:
+        """The lighting's camera-frame sun that keeps the held one at attitude ``R``."""
+        assert self._held_sun is not None
+        self._lighting = replace(self._lighting, sun_direction=_unit_tuple(R @ self._held_sun))
 
     @property
     def lighting(self) -> LightingSpec:
