@@ -331,12 +331,18 @@ def test_when_no_full_size_pass_finds_features_the_coarse_pass_stands(
     --sun-elevation 3,12 --cases 4 --seed 5`, started at the truth): the half-size pass ran,
     the full-size one found too few features. The geometric pass then ran the half-size
     pass's features on full-size renders and the estimate crashed (a ValueError of array
-    shapes). Now the half-size pass's pose stands, with its fit for the covariance. Here the
-    full-size passes are made to find too few features (the rest is a real estimate)."""
-    from worker.align import estimator
+    shapes). Now the half-size pass's pose stands, with its fit for the covariance, and the
+    geometric pass does not run on its features. Here the full-size passes are made to find
+    too few features (the rest is a real estimate); a spy records any geometric pass."""
+    from worker.align import estimator, geometric
 
-    real_pass = estimator._pass
+    real_pass, real_stage = estimator._pass, geometric.run_lm_stage
     full_size_calls = []
+    geometric_runs = []
+
+    def recorded_stage(session, *args, **kwargs):  # noqa: ANN001, ANN002, ANN003, ANN202
+        geometric_runs.append(session.level)
+        return real_stage(session, *args, **kwargs)
 
     def no_features_at_full_size(session, fit_sun):  # noqa: ANN001, ANN202
         if session.level == 1.0:
@@ -345,11 +351,13 @@ def test_when_no_full_size_pass_finds_features_the_coarse_pass_stands(
         return real_pass(session, fit_sun)
 
     monkeypatch.setattr(estimator, "_pass", no_features_at_full_size)
+    monkeypatch.setattr(geometric, "run_lm_stage", recorded_stage)
     case = make_case(demo_model, _camera(2 * SIZE_PX), DEMO_SPEC, seed=0)  # a half-size pass
     result = estimator.estimate(
         demo_model, case.reference.astype(np.float32) / 255.0, case.request
     ).result
     assert full_size_calls == [0.5], "no full-size pass after a half-size one"
+    assert geometric_runs == [], "the geometric pass ran on the half-size pass's features"
     refine = [h for h in result.history if h.stage == "refine"]
     assert refine and all(h.stage == "refine" for h in result.history[-len(refine) :])
     assert result.covariance is not None
