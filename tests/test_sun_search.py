@@ -19,7 +19,7 @@ from worker.align.session import RenderedView, Session
 from worker.align.sunsearch import lit_mask, pattern_score, shifted_pattern_score
 from worker.bench.cases import bench_camera
 from worker.bench.synth import Case, CaseSpec, pose_json
-from worker.bench.terrain import make_terrain_case
+from worker.bench.terrain import TerrainView, make_terrain_case
 from worker.demo.terrain import write_demo_terrain
 from worker.engine.meshes import LoadedModel, load_model
 
@@ -73,7 +73,11 @@ def test_a_low_sun_is_found_from_the_lit_pattern(
     terrain: LoadedModel, monkeypatch: pytest.MonkeyPatch
 ) -> None:
     case = make_terrain_case(
-        terrain, bench_camera(SIDE_PX), CaseSpec(0.0, 0.0), 11, sun_elevation_deg=(6, 9)
+        terrain,
+        bench_camera(SIDE_PX),
+        CaseSpec(0.0, 0.0),
+        11,
+        view=TerrainView(sun_elevation_deg=(6, 9)),
     )
     found = _searched_suns(terrain, case, monkeypatch)
     assert len(found) == 2
@@ -96,7 +100,11 @@ def test_a_sun_below_the_horizon_at_the_initial_pose_is_tilted_until_it_lights(
     from worker.engine.exceptions import UnlitRenderError
 
     case = make_terrain_case(
-        terrain, bench_camera(SIDE_PX), CaseSpec(0.0, 0.0), 11, sun_elevation_deg=(6, 9)
+        terrain,
+        bench_camera(SIDE_PX),
+        CaseSpec(0.0, 0.0),
+        11,
+        view=TerrainView(sun_elevation_deg=(6, 9)),
     )
     up = case.R_true @ UP
     level = case.sun_true - (case.sun_true @ up) * up
@@ -180,7 +188,11 @@ def test_before_the_coarse_stage_the_sun_is_found_wherever_the_pose_puts_the_pat
     from worker.engine.metrics import rotation_error_deg
 
     case = make_terrain_case(
-        terrain, bench_camera(SIDE_PX), CaseSpec(5.0, 0.03), 2, sun_elevation_deg=(3, 6)
+        terrain,
+        bench_camera(SIDE_PX),
+        CaseSpec(5.0, 0.03),
+        2,
+        view=TerrainView(sun_elevation_deg=(3, 6)),
     )
     true_sun = case.R_true.T @ case.sun_true  # model frame
     seen: list[tuple[bool, float, float, float]] = []

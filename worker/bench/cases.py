@@ -34,7 +34,7 @@ from worker.bench.costs import (
 )
 from worker.bench.records import failure, outcome
 from worker.bench.synth import Case, CaseSpec, make_case
-from worker.bench.terrain import TERRAIN_MODELS, make_terrain_case, terrain_model_path
+from worker.bench.terrain import TERRAIN_MODELS, TerrainView, make_terrain_case, terrain_model_path
 from worker.engine.meshes import LoadedModel
 from worker.engine.metrics import rotation_error_deg, speed_score, translation_error
 from worker.engine.posemath import pose_from_schema
@@ -182,7 +182,7 @@ class CaseTask:
     reference: str = "standard"
     #: "offset": from the case's initial guess; "truth": from the true pose (the drift).
     starts: tuple[str, ...] = ("offset",)
-    sun_elevation_deg: tuple[float, float] | None = None  # terrain: sun elevation LO, HI, °
+    terrain_view: TerrainView | None = None  # terrain: sun elevation, altitude, tilt ranges
     fill: float = 0.6  # spacecraft: diameter / smaller image side (> 1: past the frame)
     #: Whether the case id names its size (a suite of several sizes).
     sized: bool = False
@@ -220,8 +220,7 @@ def build_case(task: CaseTask, model: LoadedModel) -> tuple[Case, int]:
     camera = bench_camera(task.width_px, task.height_px)
     spec = CaseSpec(rot_deg, frac, fill=task.fill)
     if task.reference == "terrain":
-        sun = task.sun_elevation_deg
-        return make_terrain_case(model, camera, spec, ref_seed, sun_elevation_deg=sun), est_seed
+        return make_terrain_case(model, camera, spec, ref_seed, view=task.terrain_view), est_seed
     return make_case(model, camera, spec, ref_seed, reference=task.reference), est_seed
 
 

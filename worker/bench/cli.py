@@ -162,6 +162,18 @@ def _add_suite_arguments(parser: argparse.ArgumentParser) -> None:
         help="LO,HI: the terrain band's sun elevation above the horizon, degrees, drawn uniformly "
         "(default 25,45; a low sun casts long shadows)",
     )
+    parser.add_argument(
+        "--altitude",
+        type=_float_csv,
+        help="LO,HI: the terrain band's camera height above the ground it looks at, metres, "
+        "drawn uniformly (default 550,700; the demo terrain is 2 km across)",
+    )
+    parser.add_argument(
+        "--tilt",
+        type=_float_csv,
+        help="LO,HI: the terrain band's camera tilt from the nadir, degrees, drawn uniformly "
+        "(default 15,30; 0 looks straight down)",
+    )
 
 
 def _add_sequence_arguments(parser: argparse.ArgumentParser) -> None:

@@ -58,7 +58,7 @@ def make_config(args: argparse.Namespace) -> dict[str, Any]:
         "offsets": args.offsets,
         "jobs": args.jobs,
         "save_cases": args.save_cases,
-        "sun_elevation_deg": _sun_elevation(getattr(args, "sun_elevation", None), models),
+        **_terrain_view(args, models),
         "fill": _fill(getattr(args, "fill", None)),
     }
     band_edges(config["bands"])
@@ -80,23 +80,40 @@ def _models(names: list[str], terrain: bool) -> list[str]:
     return names + [m for m in TERRAIN_MODEL_NAMES if terrain and m not in names]
 
 
-def _sun_elevation(values: list[float] | None, models: list[str]) -> list[float]:
-    """The terrain band's sun elevation range, degrees: LO,HI with 0 < LO ≤ HI < 90, asked for
-    only with a terrain model among ``models``."""
-    from worker.bench.cases import BenchSetupError
-    from worker.bench.terrain import SUN_ELEVATION_DEG
+#: The terrain view's ranges: config key, option (and args attribute), unit, bounds, and
+#: whether LO may equal the lower bound (a tilt of 0 looks straight down).
+_TERRAIN_RANGES = (
+    ("sun_elevation_deg", "--sun-elevation", "degrees", (0.0, 90.0), False),
+    ("altitude_m", "--altitude", "metres", (0.0, 1e6), False),
+    ("tilt_deg", "--tilt", "degrees", (0.0, 80.0), True),
+)
 
-    if values is None:
-        return list(SUN_ELEVATION_DEG)
-    if not set(models) & set(TERRAIN_MODEL_NAMES):
-        raise BenchSetupError(
-            "--sun-elevation applies to the terrain band: add --terrain (or --models terrain)"
-        )
-    if len(values) != 2 or not 0.0 < values[0] <= values[1] < 90.0:
-        raise BenchSetupError(
-            f"--sun-elevation must be LO,HI degrees with 0 < LO <= HI < 90, got {values}"
-        )
-    return values
+
+def _terrain_view(args: argparse.Namespace, models: list[str]) -> dict[str, list[float]]:
+    """The terrain band's view ranges (worker.bench.terrain.TerrainView), each LO,HI within
+    its bounds, asked for only with a terrain model among ``models``; the defaults where not
+    asked for."""
+    from worker.bench.cases import BenchSetupError
+    from worker.bench.terrain import TerrainView
+
+    view = asdict(TerrainView())
+    out: dict[str, list[float]] = {}
+    for key, option, unit, (lo, hi), lo_ok in _TERRAIN_RANGES:
+        values = getattr(args, option[2:].replace("-", "_"), None)
+        out[key] = list(view[key]) if values is None else values
+        if values is None:
+            continue
+        if not set(models) & set(TERRAIN_MODEL_NAMES):
+            raise BenchSetupError(
+                f"{option} applies to the terrain band: add --terrain (or --models terrain)"
+            )
+        ok = len(values) == 2 and values[0] <= values[1] < hi
+        if not (ok and (values[0] >= lo if lo_ok else values[0] > lo)):
+            raise BenchSetupError(
+                f"{option} must be LO,HI {unit} with {lo:g} {'<=' if lo_ok else '<'} LO <= HI "
+                f"< {hi:g}, got {values}"
+            )
+    return out
 
 
 def _fill(value: float | None) -> float:
@@ -139,6 +156,7 @@ def make_tasks(
     (model, reference class, case index), each run from its guess and from the truth; for a
     terrain model one per case index in the terrain band, from its guess and from the truth."""
     from worker.bench.cases import CaseTask, band_edges, parse_method
+    from worker.bench.terrain import TerrainView
 
     methods = [parse_method(m) for m in config["methods"]]
     robust = config["references"] != ["standard"]
@@ -167,7 +185,7 @@ def make_tasks(
             save_cases=config["save_cases"],
             reference=reference,
             starts=plan(name)["starts"],
-            sun_elevation_deg=tuple(config["sun_elevation_deg"]),
+            terrain_view=TerrainView(**{key: tuple(config[key]) for key, *_ in _TERRAIN_RANGES}),
             fill=config["fill"],
         )
         for w, h in config["sizes"]

@@ -2,7 +2,8 @@
 
 The truth puts the camera ``ALTITUDE_M`` above a point near the patch centre, tilted
 ``TILT_DEG`` from the nadir at a random azimuth; the sun stands ``SUN_ELEVATION_DEG`` above the
-horizon (by default; ``proxpose bench --sun-elevation``) at a random azimuth. The reference
+horizon at a random azimuth (by default: ``proxpose bench --altitude``, ``--tilt`` and
+``--sun-elevation`` change the ranges, see TerrainView). The reference
 is made with physics unlike the estimator's (the robustness suite's ray tracer: a
 Lommel–Seeliger/Lambert regolith law, flat shading normals, a shadow ray, jittered
 supersampling), the request's sun ``SUN_ERROR_DEG`` off, exposure 0.7, gamma 2.2 and noise.
@@ -11,6 +12,7 @@ The initial guess is the truth rotated and moved by the band's offset.
 
 from __future__ import annotations
 
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -60,6 +62,17 @@ TERRAIN_MODELS = {
 }
 
 
+@dataclass(frozen=True)
+class TerrainView:
+    """The ranges a terrain case's view is drawn from, uniformly (``proxpose bench
+    --sun-elevation``, ``--altitude``, ``--tilt``): the sun's elevation above the horizon, deg,
+    the camera's height above the aim point, m, and its tilt from the nadir, deg."""
+
+    sun_elevation_deg: tuple[float, float] = SUN_ELEVATION_DEG
+    altitude_m: tuple[float, float] = ALTITUDE_M
+    tilt_deg: tuple[float, float] = TILT_DEG
+
+
 def terrain_model_path(name: str, data_dir: Path) -> Path:
     """The GLB of bench terrain model ``name`` under ``data_dir/models`` (written if missing)."""
     from worker.demo.terrain import demo_terrain_path, write_demo_terrain
@@ -98,17 +111,18 @@ def make_terrain_case(
     spec: CaseSpec,
     seed: int,
     options: EstimateOptions | None = None,
-    sun_elevation_deg: tuple[float, float] | None = None,
+    view: TerrainView | None = None,
 ) -> Case:
-    """One seeded terrain case (reference, request with ground truth, true pose and sun), the
-    sun's elevation drawn from ``sun_elevation_deg`` (None: SUN_ELEVATION_DEG)."""
+    """One seeded terrain case (reference, request with ground truth, true pose and sun), its
+    view drawn from the ranges of ``view`` (None: the defaults, TerrainView())."""
+    view = view or TerrainView()
     rng = np.random.default_rng(seed)
     cam = PinholeCamera.from_schema(camera)
     aim = np.array([rng.uniform(-1, 1) * AIM_SPREAD_M, 0.0, rng.uniform(-1, 1) * AIM_SPREAD_M])
     R, t = look_down_pose(
-        aim, rng.uniform(*ALTITUDE_M), rng.uniform(*TILT_DEG), rng.uniform(0, 2 * np.pi)
+        aim, rng.uniform(*view.altitude_m), rng.uniform(*view.tilt_deg), rng.uniform(0, 2 * np.pi)
     )
-    elevation = rng.uniform(*(sun_elevation_deg or SUN_ELEVATION_DEG))
+    elevation = rng.uniform(*view.sun_elevation_deg)
     sun = sun_above_horizon(R, elevation, rng.uniform(0, 2 * np.pi))
     cls = TERRAIN_REFERENCE
     sun_true = perturb_direction(sun, cls.sun_error_deg, rng)
