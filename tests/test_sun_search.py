@@ -219,3 +219,51 @@ def test_before_the_coarse_stage_the_sun_is_found_wherever_the_pose_puts_the_pat
     assert found < 1.0  # measured: 0.52°
     assert held == pytest.approx(found, abs=0.01)
     assert coarse_error < 0.5  # measured: 0.07°
+
+
+def test_a_coarse_stage_that_finds_nothing_under_the_searched_sun_runs_again_under_the_asked_one(
+    terrain: LoadedModel, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """When the coarse stage finds too few features under the sun the search before it found
+    (on the ridged bench terrain at a 6.4° sun, `--sun-elevation 6,12 --seed 41`, its third
+    case: a false maximum of the pattern's likeness lit other ridge tops than the reference),
+    it runs again from the initial pose and level with the sun as it was before the search,
+    and the estimate goes on. Here the first coarse stage is made to fail after checking that
+    it runs under the searched sun, held on the model; the rest is real."""
+    from worker.align import estimator
+    from worker.align.estimator import estimate
+    from worker.engine.exceptions import TooFewFeaturesError
+    from worker.engine.posemath import pose_from_schema
+
+    case = make_terrain_case(
+        terrain,
+        bench_camera(SIDE_PX),
+        CaseSpec(3.0, 0.02),
+        11,
+        view=TerrainView(sun_elevation_deg=(6, 9)),
+    )
+    runs: list[tuple[np.ndarray, np.ndarray, np.ndarray, float, bool]] = []
+    coarse = estimator._coarse
+
+    def spy(session: Session, plan: object) -> object:
+        sun = np.array(session.renderer.lighting.sun_direction)
+        held = session.renderer._held_sun is not None
+        runs.append((sun, np.array(session.R), np.array(session.t), session.level, held))
+        if len(runs) == 1:
+            raise TooFewFeaturesError("only 2 features found in common (made to fail)")
+        return coarse(session, plan)  # type: ignore[arg-type]
+
+    monkeypatch.setattr(estimator, "_coarse", spy)
+    result = estimate(terrain, case.reference.astype(np.float32) / 255.0, case.request).result
+    assert len(runs) == 2
+    (sun1, R1, t1, level1, held1), (sun2, R2, t2, level2, held2) = runs
+    asked = np.array(case.request.lighting.sun_direction)
+    R0, t0 = pose_from_schema(case.request.initial_pose)
+    assert held1 and not held2
+    assert _angle_deg(sun1, asked) > 0.4  # the searched sun (measured: 3.5°)
+    assert _angle_deg(sun2, asked) < 1e-6  # the asked sun, as before the search
+    np.testing.assert_allclose(R2, R0, atol=1e-12)
+    np.testing.assert_allclose(t2, t0, atol=1e-9)
+    assert level1 == level2
+    assert result.converged and result.errors is not None
+    assert result.errors.rotation_deg < 0.3  # measured: 0.070°

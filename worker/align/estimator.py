@@ -155,15 +155,10 @@ def _run_pipeline(session: Session, renderer_for: RendererFor, plan: LevelPlan) 
         # over a frame-filling scene the pose's error can put a low sun below the horizon
         sunsearch.light_up(session, lambda view: is_lit(view, session.renderer.lighting))
     check_lit(session.current_view(), session.renderer.lighting)
-    try:
-        if fit_sun:
-            # over a frame-filling scene at a low sun, the pattern of what is lit, wherever
-            # the pose's error puts it, says where the sun is (held while the coarse stage
-            # moves the pose)
-            sunsearch.search_sun_before_coarse(session)
-        reason = _coarse(session, plan)
-    finally:
-        sunsearch.release_sun(session)
+    coarse = partial(_coarse, session, plan)
+    # over a frame-filling scene at a low sun, the pattern of what is lit, wherever the pose's
+    # error puts it, says where the sun is (held while the coarse stage moves the pose)
+    reason = sunsearch.coarse_under_searched_sun(session, coarse) if fit_sun else coarse()
     if reason is not None:  # PnP alone: nothing follows the coarse stage
         return reason
     if fit_sun:
