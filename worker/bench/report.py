@@ -208,12 +208,12 @@ def robust_row(method: str, s: Stats) -> str:
 def terrain_tables(summary: dict[str, Any], config: dict[str, Any]) -> str:
     """A table per terrain model (the tuned generator, the held-out one), rows = methods."""
     from worker.bench.config import TERRAIN_BAND
-    from worker.bench.terrain import ALTITUDE_M, TERRAIN_MODELS, TERRAIN_REFERENCE, TILT_DEG
+    from worker.bench.terrain import TERRAIN_MODELS, TERRAIN_REFERENCE
 
     lo, hi = TERRAIN_BAND
     sun_lo, sun_hi = config["sun_elevation_deg"]
-    alt_lo, alt_hi = config.get("altitude_m", ALTITUDE_M)
-    tilt_lo, tilt_hi = config.get("tilt_deg", TILT_DEG)
+    alt_lo, alt_hi = config["altitude_m"]
+    tilt_lo, tilt_hi = config["tilt_deg"]
     parts = [
         "\n### Terrain band: a cratered heightfield filling the frame\n\n"
         f"Camera {alt_lo:g}–{alt_hi:g} m above the ground, tilted {tilt_lo:g}–{tilt_hi:g}° from "
