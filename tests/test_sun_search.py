@@ -32,6 +32,13 @@ def terrain(tmp_path_factory: pytest.TempPathFactory, variant: str) -> LoadedMod
     return load_model(write_demo_terrain(path, seed=3, posts=257))
 
 
+def _case(terrain: LoadedModel, spec: CaseSpec, seed: int, sun_deg: tuple[float, float]) -> Case:
+    """The bench's terrain case ``seed`` at SIDE_PX, the sun drawn from ``sun_deg`` (LO, HI
+    degrees above the horizon)."""
+    view = TerrainView(sun_elevation_deg=sun_deg)
+    return make_terrain_case(terrain, bench_camera(SIDE_PX), spec, seed, view=view)
+
+
 class _Searched(Exception):
     """Raised by the spy once the search has run."""
 
@@ -72,13 +79,7 @@ def _searched_suns(
 def test_a_low_sun_is_found_from_the_lit_pattern(
     terrain: LoadedModel, monkeypatch: pytest.MonkeyPatch
 ) -> None:
-    case = make_terrain_case(
-        terrain,
-        bench_camera(SIDE_PX),
-        CaseSpec(0.0, 0.0),
-        11,
-        view=TerrainView(sun_elevation_deg=(6, 9)),
-    )
+    case = _case(terrain, CaseSpec(0.0, 0.0), 11, sun_deg=(6, 9))
     found = _searched_suns(terrain, case, monkeypatch)
     assert len(found) == 2
     (before, after, moved, renders), (_, last, _, renders_after) = found
@@ -99,13 +100,7 @@ def test_a_sun_below_the_horizon_at_the_initial_pose_is_tilted_until_it_lights(
     from worker.bench.terrain import UP
     from worker.engine.exceptions import UnlitRenderError
 
-    case = make_terrain_case(
-        terrain,
-        bench_camera(SIDE_PX),
-        CaseSpec(0.0, 0.0),
-        11,
-        view=TerrainView(sun_elevation_deg=(6, 9)),
-    )
+    case = _case(terrain, CaseSpec(0.0, 0.0), 11, sun_deg=(6, 9))
     up = case.R_true @ UP
     level = case.sun_true - (case.sun_true @ up) * up
     e = np.radians(-6.0)
@@ -187,13 +182,7 @@ def test_before_the_coarse_stage_the_sun_is_found_wherever_the_pose_puts_the_pat
     from worker.align.estimator import estimate
     from worker.engine.metrics import rotation_error_deg
 
-    case = make_terrain_case(
-        terrain,
-        bench_camera(SIDE_PX),
-        CaseSpec(5.0, 0.03),
-        2,
-        view=TerrainView(sun_elevation_deg=(3, 6)),
-    )
+    case = _case(terrain, CaseSpec(5.0, 0.03), 2, sun_deg=(3, 6))
     true_sun = case.R_true.T @ case.sun_true  # model frame
     seen: list[tuple[bool, float, float, float]] = []
     search = sunsearch.search_sun
@@ -235,13 +224,7 @@ def test_a_coarse_stage_that_finds_nothing_under_the_searched_sun_runs_again_und
     from worker.engine.exceptions import TooFewFeaturesError
     from worker.engine.posemath import pose_from_schema
 
-    case = make_terrain_case(
-        terrain,
-        bench_camera(SIDE_PX),
-        CaseSpec(3.0, 0.02),
-        11,
-        view=TerrainView(sun_elevation_deg=(6, 9)),
-    )
+    case = _case(terrain, CaseSpec(3.0, 0.02), 11, sun_deg=(6, 9))
     runs: list[tuple[np.ndarray, np.ndarray, np.ndarray, float, bool]] = []
     coarse = estimator._coarse
 
