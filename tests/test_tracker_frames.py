@@ -24,6 +24,7 @@ def _tracked_session(perturbation_spp: int) -> tuple[Session, list[int]]:
     previous.renderer.render = counted  # type: ignore[method-assign]
     tracker = Tracker.__new__(Tracker)
     tracker.should_cancel = None
+    tracker._points = np.zeros((1, 3), np.float32)  # the stub renderer has no window sensors
     image = np.zeros((64, 64, 3), np.float32)
     return tracker._session(previous, image, (R0, T0), None), spps
 

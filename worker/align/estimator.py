@@ -83,8 +83,12 @@ def estimate(
     request: EstimateRequest,
     on_iteration: ProgressCallback | None = None,
     should_cancel: CancelCheck | None = None,
+    window_sensors: bool = False,
 ) -> Estimate:
-    """Estimate the pose of ``model`` in ``reference`` (float image, [0, 1], display-encoded)."""
+    """Estimate the pose of ``model`` in ``reference`` (float image, [0, 1], display-encoded).
+
+    ``window_sensors``: give the renderer window sensors even when ``options.window`` is off
+    (the estimate then works on the whole image; a tracker renders its frames' windows)."""
     start = time.perf_counter()
     opts = request.options.resolved()
     camera = PinholeCamera.from_schema(request.camera)
@@ -96,7 +100,7 @@ def estimate(
         target_px(model, camera, R0, t0),
         opts.perturbation_scale,
         opts.pyramid and refines,
-        opts.window and refines,
+        (opts.window or window_sensors) and refines,
     )
     renderer_for = partial(
         get_renderer,
@@ -238,7 +242,8 @@ def _refine(
     MAX_EXTRA_PASSES that 'slow' passes earn)."""
     opts = session.options
     # The coarse stage has placed the target: window the refinement around its lit part.
-    session.place_window(window_from)
+    if opts.window:
+        session.place_window(window_from)
     # the first pass at its level, unless it is the only one (the last: at full resolution)
     session.set_level(plan.first_pass if opts.refine_passes > 1 else 1.0)
     if opts.shading_normals == "auto":

@@ -23,7 +23,7 @@ from worker.align.features import Described, describe
 from worker.align.pyramid import ladder_side
 from worker.engine.camera import PinholeCamera
 from worker.engine.exceptions import EstimationCancelled
-from worker.engine.images import FloatImage
+from worker.engine.images import FloatImage, on_sky
 from worker.engine.metrics import rotation_error_deg, translation_error
 from worker.engine.photometry import render_to_grey, to_u8
 from worker.engine.posemath import pose_to_schema
@@ -54,13 +54,10 @@ class RenderedView:
         """This view on the level's whole image: a window's render pasted onto the sky."""
         if self.window is None or self.frame is None:
             return self
-        (x, y), (w, h) = self.window.origin, self.frame
-        hh, ww = self.grey.shape[:2]
-        linear = np.zeros((h, w, *self.linear.shape[2:]), dtype=self.linear.dtype)
-        grey = np.zeros((h, w), dtype=self.grey.dtype)
-        linear[y : y + hh, x : x + ww] = self.linear
-        grey[y : y + hh, x : x + ww] = self.grey
-        return RenderedView(self.R, self.t, linear, grey, self.level, self.spp)
+        o, f = self.window.origin, self.frame
+        return RenderedView(
+            self.R, self.t, on_sky(self.linear, o, f), on_sky(self.grey, o, f), self.level, self.spp
+        )
 
 
 @dataclass(frozen=True)
@@ -127,6 +124,9 @@ class Session:
     window_side: int | None = None
     window_centre: tuple[float, float] = (0.0, 0.0)
     window_offset: tuple[float, float] = (0.0, 0.0)
+    #: (ladder side, centre px) of a window that holds the whole target (a tracked frame's):
+    #: whole-image renders render only it, pasted onto the sky. None: render the whole image.
+    sky_window: tuple[int, tuple[float, float]] | None = None
     _pyramid: dict[float, tuple[FloatImage, FloatImage]] = field(default_factory=dict)
     _renders_at_last_record: int = 0
     _described: dict[tuple[str, int, float, Window | None], Described] = field(default_factory=dict)
@@ -281,17 +281,20 @@ class Session:
         so cost comparisons see the pose and not the sampler.
         """
         window, spp = self.window, self.main_spp
-        linear = self._render(R, t, self.level, spp, self.options.seed, window)
+        sky = self._sky_window(self.level) if window is None else None
+        linear = self._render(R, t, self.level, spp, self.options.seed, window or sky)
+        at, whole = window or sky, self.renderer.camera_at(self.level)
+        frame = None if at is None else (whole.width, whole.height)
         grey = render_to_grey(linear)
-        frame = None
-        if window is not None:
-            whole = self.renderer.camera_at(self.level)
-            frame = (whole.width, whole.height)
-        view = RenderedView(
-            np.asarray(R), np.asarray(t), linear, grey, self.level, spp, window, frame
-        )
+        view = RenderedView(np.asarray(R), np.asarray(t), linear, grey, self.level, spp, at, frame)
+        if sky is not None:
+            view = view.in_frame()  # a sky window's render on the whole image
         self.views.setdefault("first", view)
         return view
+
+    def _sky_window(self, scale: float) -> Window | None:
+        """The sky window at ``scale`` (None without one or a sensor for it)."""
+        return None if self.sky_window is None else self.renderer.window_at(scale, *self.sky_window)
 
     @property
     def main_spp(self) -> int:
@@ -322,7 +325,11 @@ class Session:
         """Display-encoded grey render for Jacobian learning (at the level's perturbation
         scale, with the perturbation spp; of the window at that scale, if any)."""
         spp, scale = self.options.perturbation_spp, self.perturbation_scale
-        return render_to_grey(self._render(R, t, scale, spp, seed, self._window_at(scale)))
+        window = self._window_at(scale)
+        sky = self._sky_window(scale) if window is None else None
+        grey = render_to_grey(self._render(R, t, scale, spp, seed, window or sky))
+        whole = self.renderer.camera_at(scale)
+        return grey if sky is None else on_sky(grey, sky.origin, (whole.width, whole.height))
 
     def raycast(self, R: Array, t: Array, uv: Array) -> tuple[Array, NDArray[np.bool_]]:
         """Surface points (N, 3, model frame) seen through the working level's pixels uv

@@ -11,6 +11,9 @@ The learned-Jacobian LM stays the core: the rows are the paper's, learned from p
 renders, and learned again (with the features made afresh) once the attitude has turned
 RELEARN_ROTATION_DEG from where they were learned or too few features are left.
 
+A frame's renders render only a window around the target, pasted onto the sky
+(worker.align.skywindow).
+
 Each frame is refereed: an LM that does not converge, a last render that explains the image
 poorly (alignment score below MIN_TRACK_SCORE, or far below the last frames') or too few
 features mark it lost, and the tracker re-initialises with a full estimate ('reinitialised'),
@@ -36,6 +39,7 @@ from worker.align.estimator import (
 from worker.align.learning import LearnedJacobian, learn_at_pose
 from worker.align.refine import StageState, run_lm_stage
 from worker.align.session import CancelCheck, Session
+from worker.align.skywindow import follow_target, sky_window
 from worker.align.tracked import TrackedFeatures
 from worker.engine.exceptions import ProxposeError, TooFewFeaturesError
 from worker.engine.images import FloatImage, check_size, to_grey
@@ -139,6 +143,8 @@ class Tracker:
         self._velocity: Array | None = None
         self._misalignment: list[float] = []
         self._memory: _Memory | None = None
+        #: The model's vertices (model frame), whose image bounds each frame's sky window.
+        self._points = np.concatenate([p.vertices for p in model.parts]).astype(np.float32)
 
     # -- the sequence ---------------------------------------------------------------------
     def track(self, image: FloatImage, truth: Pose | None = None) -> FrameResult:
@@ -187,7 +193,9 @@ class Tracker:
         request = self.request.model_copy(
             update={"initial_pose": pose_to_schema(*guess), "ground_truth": None}
         )
-        est = estimate(self.model, image, request, should_cancel=self.should_cancel)
+        est = estimate(
+            self.model, image, request, should_cancel=self.should_cancel, window_sensors=True
+        )
         session = est.session
         assert session is not None
         result = est.result
@@ -233,6 +241,7 @@ class Tracker:
                 session.options = session.options.model_copy(
                     update={"max_iterations": len(session.history) + FRAME_ITERATIONS}
                 )
+                follow_target(session, self._points)  # it may be far from the prediction
                 reason = self._lm(session, self._fresh(session))
             # The last render referees the frame: after a linear step it is the step's start,
             # a fraction of a pixel away.
@@ -286,7 +295,7 @@ class Tracker:
         opts = previous.options.model_copy(
             update={"max_iterations": FRAME_ITERATIONS, "perturbation_spp": spp}
         )
-        return Session(
+        session = Session(
             renderer=previous.renderer,
             reference=image,
             reference_grey=to_grey(image),
@@ -298,6 +307,9 @@ class Tracker:
             rng=previous.rng,
             perturbation_scales=previous.perturbation_scales,
         )
+        keep = previous.sky_window[0] if previous.sky_window else None
+        session.sky_window = sky_window(self._points, session, guess, keep)
+        return session
 
     def _carry(self, memory: _Memory, session: Session) -> StageState:
         """The previous frame's features and Jacobian rows, moved into this frame."""

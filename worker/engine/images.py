@@ -147,3 +147,11 @@ def encode_png(
         return enc.tobytes()
     Image.fromarray(arr).save(buf, format="PNG", compress_level=compress_level)
     return buf.getvalue()
+
+
+def on_sky(image: FloatImage, origin: tuple[int, int], size: tuple[int, int]) -> FloatImage:
+    """A window's ``image`` at ``origin`` of a black image of ``size`` (w, h)."""
+    (x, y), (w, h) = origin, size
+    out = np.zeros((h, w, *image.shape[2:]), dtype=image.dtype)
+    out[y : y + image.shape[0], x : x + image.shape[1]] = image
+    return out
