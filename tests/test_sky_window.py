@@ -105,8 +105,8 @@ def test_a_side_is_kept_from_frame_to_frame_while_not_too_large(
     assert larger, sides
     assert sky_window(points, session, (R_MODEL, T_MODEL), keep=larger[-1])[0] == larger[-1]  # type: ignore[index]
     too_large = [s for s in sides if s > SKY_KEEP * side]
-    if too_large:
-        assert sky_window(points, session, (R_MODEL, T_MODEL), keep=too_large[0])[0] == side  # type: ignore[index]
+    assert too_large, sides
+    assert sky_window(points, session, (R_MODEL, T_MODEL), keep=too_large[0])[0] == side  # type: ignore[index]
     smaller = [s for s in sides if s < side]
     assert sky_window(points, session, (R_MODEL, T_MODEL), keep=smaller[-1])[0] == side  # type: ignore[index]
 

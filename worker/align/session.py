@@ -323,7 +323,8 @@ class Session:
 
     def render_perturbed(self, R: Array, t: Array, seed: int) -> FloatImage:
         """Display-encoded grey render for Jacobian learning (at the level's perturbation
-        scale, with the perturbation spp; of the window at that scale, if any)."""
+        scale, with the perturbation spp; of the window at that scale, if any; a sky window's
+        render pasted onto the whole image)."""
         spp, scale = self.options.perturbation_spp, self.perturbation_scale
         window = self._window_at(scale)
         sky = self._sky_window(scale) if window is None else None

@@ -60,13 +60,13 @@ def sky_window(
         side = keep
     centre = (float(lo[0] + hi[0]) / 2, float(lo[1] + hi[1]) / 2)
     window = None if side is None else renderer.window_at(1.0, side, centre)
-    if side is None or window is None:
+    if window is None:
         return None
-    (x, y), (w, h) = window.origin, renderer.window_sizes[(side, 1.0)]
+    (x, y), (w, h) = window.origin, renderer.window_sizes[(window.side, 1.0)]
     reference = session.reference_grey
     lit = reference > LIT_FRACTION * float(reference.max())
     inside = int(lit[y : y + h, x : x + w].sum())
-    return (side, centre) if int(lit.sum()) - inside <= SKY_SPILL * inside else None
+    return (window.side, centre) if int(lit.sum()) - inside <= SKY_SPILL * inside else None
 
 
 def follow_target(session: Session, points: NDArray[np.float32]) -> None:
