@@ -8,11 +8,14 @@ from __future__ import annotations
 import numpy as np
 from synthetic_images import blobs, rectangles
 
-from worker.engine.images import srgb_decode, to_display
+from worker.engine.images import Box, srgb_decode, to_display
 from worker.engine.photometry import (
+    BLUR_REACH_PX,
+    _percentile_above_zeros,
     alignment_score,
     apply_tone_curve,
     content_mask,
+    contrast_scale,
     fit_tone_curve,
     local_normalise_f,
     match_histogram,
@@ -82,6 +85,32 @@ def test_local_normalisation_ignores_gain_and_offset() -> None:
     np.testing.assert_allclose(
         local_normalise_f(grey), local_normalise_f(0.5 * grey + 0.2), atol=1e-3
     )
+
+
+def test_normalising_a_box_of_a_render_on_the_sky_is_normalising_the_whole() -> None:
+    """A render's window pasted onto the sky: computing only around the window (by the blurs'
+    reach) gives the whole image's contrast scale and normalisation, the floor included."""
+    render = np.zeros((200, 260), np.float32)
+    box = Box.at((90, 40), (128, 128))
+    render[box.slices] = to_display(scene())
+    grown = box.grown(BLUR_REACH_PX, render.shape)
+    assert grown.pixels < render.size
+    whole = contrast_scale(render)
+    np.testing.assert_allclose(contrast_scale(render, box=grown), whole, rtol=1e-6)
+    np.testing.assert_allclose(
+        local_normalise_f(render, whole, box=grown), local_normalise_f(render, whole), atol=1e-5
+    )
+
+
+def test_a_percentile_among_zeros_not_made() -> None:
+    rng = np.random.default_rng(2)
+    values = rng.random(500).astype(np.float32)
+    for zeros in (0, 1, 300, 5000, 60000):
+        with_zeros = np.concatenate([values, np.zeros(zeros, np.float32)])
+        for q in (50.0, 99.0, 99.9):
+            np.testing.assert_allclose(
+                _percentile_above_zeros(values, q, zeros), np.percentile(with_zeros, q), rtol=1e-5
+            )
 
 
 def test_histogram_matching_copies_the_template_distribution() -> None:

@@ -18,6 +18,7 @@ from worker.align.pyramid import WINDOW_MARGIN, WINDOW_PAD_PX, plan_windows
 from worker.align.session import Session
 from worker.align.skywindow import SKY_KEEP, sky_window
 from worker.engine.camera import PinholeCamera
+from worker.engine.images import Box
 from worker.engine.photometry import render_to_grey
 from worker.engine.renderer import Renderer
 
@@ -83,6 +84,10 @@ def test_a_frame_renders_only_its_window_pasted_onto_the_sky(
     window_cost = session.render_cost - whole_cost
     assert window_cost < 0.7 * whole_cost
     w, h = renderer.window_sizes[(side, 1.0)]
+    # the view knows where it was pasted (its processing looks only there, worker.align.tracked)
+    window = renderer.window_at(1.0, *sky)
+    assert window is not None and pasted.sky_box == Box.at(window.origin, (w, h))
+    assert whole.sky_box is None
     np.testing.assert_allclose(window_cost, w * h / (CAMERA.width * CAMERA.height))
 
     # the perturbation renders: the whole image at their scale, the window pasted in

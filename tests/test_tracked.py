@@ -13,7 +13,8 @@ from synthetic_images import blobs, rectangles
 from schemas.options import EstimateOptions
 from worker.align.session import RenderedView
 from worker.align.tracked import MatchedFeatures, TrackedFeatures
-from worker.engine.photometry import render_to_grey
+from worker.engine.images import Box, on_sky
+from worker.engine.photometry import BLUR_REACH_PX, render_to_grey
 
 SHIFT = np.array([0.63, -0.41])
 MOVE = np.array([1.2, 0.7])  # a further render, moved from the first
@@ -89,3 +90,40 @@ def test_matched_features_measure_the_shift_and_track_into_other_renders() -> No
     np.testing.assert_allclose(np.median((h2 - feats.x_base)[ok2], axis=0), MOVE, atol=0.05)
     assert np.isnan(feats.feature_normals).all()
     np.testing.assert_array_equal(feats.A, np.broadcast_to(np.eye(2), feats.A.shape))
+
+
+def test_a_window_pasted_on_the_sky_is_processed_only_around_itself() -> None:
+    """A tracked frame's renders are a window pasted onto the sky (``RenderedView.sky_box``):
+    its features are made, carried into the next frame and measured from the box grown by the
+    blurs' reach only, and come out as from the whole image."""
+    origin, size = (150, 90), (400, 320)
+    box = Box.at((origin[0] - 20, origin[1] - 20), (168, 168))  # the window, 20 px around
+    assert 2 * box.grown(BLUR_REACH_PX, (size[1], size[0])).pixels < size[0] * size[1]
+
+    def on_frame(image: np.ndarray) -> np.ndarray:
+        return on_sky(box.of(on_sky(image, origin, size)), (box.x0, box.y0), size)
+
+    def frame_view(shift: np.ndarray, windowed: bool) -> RenderedView:
+        linear = on_frame(scene(shift))
+        grey = render_to_grey(linear)
+        return RenderedView(np.eye(3), np.zeros(3), linear, grey, sky_box=box if windowed else None)
+
+    def frame_session(shift: np.ndarray) -> SimpleNamespace:
+        reference = on_frame((0.8 * scene(shift)) ** 0.5) + 0.01  # a faint sky around
+        return SimpleNamespace(
+            ref_image=reference, ref_grey=reference, options=EstimateOptions().resolved()
+        )
+
+    out = []
+    for windowed in (False, True):
+        feats = TrackedFeatures(frame_session(SHIFT), frame_view(STILL, windowed))  # type: ignore[arg-type]
+        h, ok = feats.measure(frame_view(STILL, windowed), None)
+        motion = np.tile(MOVE, (len(feats.x_ref), 1))
+        nxt = frame_view(MOVE, windowed)
+        carried, keep = feats.carried(frame_session(SHIFT + MOVE), nxt, motion)  # type: ignore[arg-type]
+        h2, ok2 = carried.measure(nxt, (h + motion)[keep])
+        out.append((feats.x_ref, feats.A, h[ok], carried.x_ref, keep, h2[ok2], carried.A))
+    whole, boxed = out
+    assert len(whole[0]) >= 20 and whole[4].mean() > 0.8
+    for a, b in zip(whole, boxed, strict=True):
+        np.testing.assert_allclose(b, a, atol=2e-3)

@@ -230,12 +230,19 @@ def structure_whitening(
     the smallest is floored, so a clean corner is isotropic and a pure edge keeps a little
     weight along itself.
     """
-    g = img8.astype(np.float32)
+    h, w = img8.shape
+    c = np.clip(np.round(pts).astype(int), 0, [w - 1, h - 1])
+    # Only around the points: the blur's kernel reaches 4 σ, the gradient 1 px more.
+    reach = int(np.ceil(4 * sigma_px)) + 2
+    if len(c) == 0:
+        return np.zeros((0, 2, 2))
+    lo = np.maximum(c.min(axis=0) - reach, 0)
+    hi = np.minimum(c.max(axis=0) + reach + 1, [w, h])
+    g = img8[lo[1] : hi[1], lo[0] : hi[0]].astype(np.float32)
     ix = cv2.Scharr(g, cv2.CV_32F, 1, 0)
     iy = cv2.Scharr(g, cv2.CV_32F, 0, 1)
     comps = [cv2.GaussianBlur(p, (0, 0), sigma_px) for p in (ix * ix, ix * iy, iy * iy)]
-    h, w = g.shape
-    c = np.clip(np.round(pts).astype(int), 0, [w - 1, h - 1])
+    c = c - lo
     gxx, gxy, gyy = (m[c[:, 1], c[:, 0]].astype(np.float64) for m in comps)
     G = np.stack([np.stack([gxx, gxy], -1), np.stack([gxy, gyy], -1)], -2)
     lam, V = np.linalg.eigh(G)

@@ -23,7 +23,7 @@ from worker.align.features import Described, describe
 from worker.align.pyramid import ladder_side
 from worker.engine.camera import PinholeCamera
 from worker.engine.exceptions import EstimationCancelled
-from worker.engine.images import FloatImage, on_sky
+from worker.engine.images import Box, FloatImage, on_sky
 from worker.engine.metrics import rotation_error_deg, translation_error
 from worker.engine.photometry import render_to_grey, to_u8
 from worker.engine.posemath import pose_to_schema
@@ -49,15 +49,17 @@ class RenderedView:
     spp: int = 0  # samples per pixel it was rendered with
     window: Window | None = None  # the window of the level's image it shows (None: all)
     frame: tuple[int, int] | None = None  # (w, h) of the level's whole image, for a window
+    #: On the whole image: where the window's render was pasted (the sky is all around it).
+    sky_box: Box | None = None
 
     def in_frame(self) -> RenderedView:
         """This view on the level's whole image: a window's render pasted onto the sky."""
         if self.window is None or self.frame is None:
             return self
         o, f = self.window.origin, self.frame
-        return RenderedView(
-            self.R, self.t, on_sky(self.linear, o, f), on_sky(self.grey, o, f), self.level, self.spp
-        )
+        box = Box.at(o, (self.grey.shape[1], self.grey.shape[0]))
+        linear, grey = on_sky(self.linear, o, f), on_sky(self.grey, o, f)
+        return RenderedView(self.R, self.t, linear, grey, self.level, self.spp, sky_box=box)
 
 
 @dataclass(frozen=True)
@@ -364,13 +366,7 @@ class Session:
 
     # -- history -------------------------------------------------------------------------
     def record(
-        self,
-        stage: Stage,
-        cost: float,
-        step_norm: float,
-        lam: float,
-        accepted: bool,
-        features: int,
+        self, stage: Stage, cost: float, step_norm: float, lam: float, accepted: bool, features: int
     ) -> IterationRecord:
         now = time.perf_counter()
         renders = self.renders

@@ -25,8 +25,9 @@ from worker.align.blur import relative_blur
 from worker.align.edges import detect_edge_points, normal_shift
 from worker.align.features import detect_corners, match_features, structure_whitening, track
 from worker.align.session import RenderedView, Session
-from worker.engine.images import srgb_decode, srgb_encode, to_grey
+from worker.engine.images import Box, srgb_decode, srgb_encode, to_grey
 from worker.engine.photometry import (
+    BLUR_REACH_PX,
     content_mask,
     contrast_scale,
     local_normalise,
@@ -79,7 +80,7 @@ class TrackedFeatures:
         # Equal sharpness too: a corner blurred differently in the two images sits elsewhere.
         # Blur acts on light, so it is measured and applied in linear units, then encoded.
         self.blur_render = relative_blur(ref_linear, to_grey(view.linear))
-        self.scale = contrast_scale(self._render_grey(view))
+        self.scale = contrast_scale(self._render_grey(view), box=work_box(view))
         ref_grey = srgb_encode(ref_linear)
         self.ref8 = local_normalise(ref_grey, self.scale)
         # Corners of the contrast-normalised reference: dim parts (a dark solar array) then
@@ -117,10 +118,18 @@ class TrackedFeatures:
         features it keeps."""
         new = copy.copy(self)
         anchor = self.anchor
-        ref_grey = on_render_scale(session.ref_image, self.tone_curve)
-        new.scale = contrast_scale(self._render_grey(view))
-        new.ref_f = local_normalise_f(ref_grey, new.scale)
-        new.ref8 = normalised_to_u8(new.ref_f)
+        # Only the target's part of the new reference is looked at (a window's render: the
+        # rest of the render is sky, and the reference should be dark there too).
+        box = work_box(view)
+        ref_image = session.ref_image
+        if box is None:
+            ref_grey = on_render_scale(ref_image, self.tone_curve)
+        else:
+            part = on_render_scale(box.of(ref_image), self.tone_curve)
+            ref_grey = box.paste(part, view.grey.shape)
+        new.scale = contrast_scale(self._render_grey(view), box=box)
+        new.ref_f = local_normalise_f(ref_grey, new.scale, box=box)
+        new.ref8 = normalised_to_u8(new.ref_f, box)
         kc = len(self.corners)
         corners, ok_c = track(
             anchor.ref8, new.ref8, anchor.corners[self.anchor_corners], self.corners + motion[:kc]
@@ -145,7 +154,10 @@ class TrackedFeatures:
         if self.blur_render <= 0.05:
             return view.grey
         if self._grey is None or self._grey[0] is not view:
-            self._grey = (view, srgb_encode(_blurred(to_grey(view.linear), self.blur_render)))
+            box = work_box(view)
+            linear = view.linear if box is None else box.of(view.linear)
+            grey = srgb_encode(_blurred(to_grey(linear), self.blur_render))
+            self._grey = (view, grey if box is None else box.paste(grey, view.grey.shape))
         return self._grey[1]
 
     def _normalised(self, view: RenderedView) -> tuple[NDArray[np.uint8], Array]:
@@ -154,8 +166,9 @@ class TrackedFeatures:
         and its first measurement share."""
         cached = self._normalised_view
         if cached is None or cached[0] is not view or cached[1] is not self.scale:
-            f = local_normalise_f(self._render_grey(view), self.scale)
-            cached = self._normalised_view = (view, self.scale, normalised_to_u8(f), f)
+            box = work_box(view)
+            f = local_normalise_f(self._render_grey(view), self.scale, box=box)
+            cached = self._normalised_view = (view, self.scale, normalised_to_u8(f, box), f)
         return cached[2], cached[3]
 
     def measure(self, view: RenderedView, guess: Array | None) -> tuple[Array, NDArray[np.bool_]]:
@@ -196,6 +209,12 @@ class TrackedFeatures:
 class _Anchor:
     ref8: NDArray[np.uint8]  # the normalised reference the corners were found in
     corners: Array  # (kc, 2) their positions there
+
+
+def work_box(view: RenderedView) -> Box | None:
+    """The part of ``view``'s image that processing it needs: its sky box grown by the blurs'
+    reach (outside it the render and every blur of it are sky); None: all of it."""
+    return None if view.sky_box is None else view.sky_box.grown(BLUR_REACH_PX, view.grey.shape)
 
 
 def _blurred(img: Array, sigma_px: float) -> Array:

@@ -40,7 +40,7 @@ from worker.align.learning import LearnedJacobian, learn_at_pose
 from worker.align.refine import StageState, run_lm_stage
 from worker.align.session import CancelCheck, Session
 from worker.align.skywindow import follow_target, sky_window
-from worker.align.tracked import TrackedFeatures
+from worker.align.tracked import TrackedFeatures, work_box
 from worker.engine.exceptions import ProxposeError, TooFewFeaturesError
 from worker.engine.images import FloatImage, check_size, to_grey
 from worker.engine.meshes import LoadedModel
@@ -245,8 +245,9 @@ class Tracker:
                 reason = self._lm(session, self._fresh(session))
             # The last render referees the frame: after a linear step it is the step's start,
             # a fraction of a pixel away.
-            assert session.current is not None
-            score = alignment_score(session.ref_grey, session.current.grey)
+            current = session.current
+            assert current is not None
+            score = alignment_score(session.ref_grey, current.grey, work_box(current))
         except TooFewFeaturesError:
             score, reason = -1.0, "too_few_features"
         fit = session.fit

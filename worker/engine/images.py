@@ -8,6 +8,7 @@ radiance; :func:`to_display` maps them to the sRGB-encoded [0, 1] range a camera
 from __future__ import annotations
 
 import io
+from dataclasses import dataclass
 
 import numpy as np
 from numpy.typing import NDArray
@@ -151,7 +152,52 @@ def encode_png(
 
 def on_sky(image: FloatImage, origin: tuple[int, int], size: tuple[int, int]) -> FloatImage:
     """A window's ``image`` at ``origin`` of a black image of ``size`` (w, h)."""
-    (x, y), (w, h) = origin, size
-    out = np.zeros((h, w, *image.shape[2:]), dtype=image.dtype)
-    out[y : y + image.shape[0], x : x + image.shape[1]] = image
-    return out
+    box = Box.at(origin, (image.shape[1], image.shape[0]))
+    return box.paste(image, (size[1], size[0]))
+
+
+@dataclass(frozen=True)
+class Box:
+    """A rectangle of an image, columns [x0, x1) and rows [y0, y1), px."""
+
+    x0: int
+    y0: int
+    x1: int
+    y1: int
+
+    @classmethod
+    def at(cls, origin: tuple[int, int], size: tuple[int, int]) -> Box:
+        """The box of ``size`` (w, h) whose top-left pixel is ``origin``."""
+        (x, y), (w, h) = origin, size
+        return cls(x, y, x + w, y + h)
+
+    @property
+    def slices(self) -> tuple[slice, slice]:
+        return slice(self.y0, self.y1), slice(self.x0, self.x1)
+
+    @property
+    def pixels(self) -> int:
+        return (self.x1 - self.x0) * (self.y1 - self.y0)
+
+    def grown(self, margin: int, shape: tuple[int, ...]) -> Box:
+        """This box ``margin`` px larger on every side, within an image of ``shape``."""
+        h, w = shape[:2]
+        return Box(
+            max(self.x0 - margin, 0),
+            max(self.y0 - margin, 0),
+            min(self.x1 + margin, w),
+            min(self.y1 + margin, h),
+        )
+
+    def of(self, image: NDArray[np.generic]) -> NDArray[np.generic]:
+        """The box's part of ``image`` (a view)."""
+        return image[self.slices]
+
+    def paste(
+        self, part: NDArray[np.generic], shape: tuple[int, ...], fill: float = 0.0
+    ) -> NDArray[np.generic]:
+        """``part`` (the box's size) in an image of ``shape``'s rows and columns, ``fill``
+        elsewhere."""
+        out = np.full((*shape[:2], *part.shape[2:]), fill, dtype=part.dtype)
+        out[self.slices] = part
+        return out

@@ -15,7 +15,7 @@ import cv2
 import numpy as np
 from numpy.typing import NDArray
 
-from worker.engine.images import FloatImage, srgb_decode, to_display, to_grey
+from worker.engine.images import Box, FloatImage, srgb_decode, to_display, to_grey
 
 U8 = NDArray[np.uint8]
 
@@ -40,6 +40,11 @@ MIN_SKY_PX = 50
 LCN_SIGMA_PX = 4.0
 LCN_GAIN = 40.0
 LCN_FLOOR = 0.3
+#: How far (px) the blurs of local contrast normalisation reach, chained, at full resolution
+#: (3 σ of each: DENOISE_SIGMA_PX, then LCN_SIGMA_PX twice, and a blur of up to 4 px to match a
+#: reference's sharpness): the margin a box of a render on the sky needs for its normalisation
+#: to equal the whole image's.
+BLUR_REACH_PX = 40
 
 
 def render_to_grey(render_linear: FloatImage) -> FloatImage:
@@ -179,11 +184,15 @@ def apply_tone_curve(
     return np.interp(image, x, y).astype(np.float32)
 
 
-def alignment_score(reference_grey: FloatImage, render_grey: FloatImage) -> float:
+def alignment_score(
+    reference_grey: FloatImage, render_grey: FloatImage, box: Box | None = None
+) -> float:
     """How well a render explains the reference: zero-mean normalised cross-correlation of the
     two (reference histogram-matched onto the render, both smoothed) over where either shows
     the target. 1 is a perfect match; it needs no features, so it can referee feature-based
-    steps."""
+    steps. ``box``: score only that part of the images (the target's)."""
+    if box is not None:
+        reference_grey, render_grey = box.of(reference_grey), box.of(render_grey)
     ref = match_histogram(reference_grey, render_grey)
     a = cv2.GaussianBlur(ref, (0, 0), SCORE_SMOOTH_PX)
     b = cv2.GaussianBlur(render_grey.astype(np.float32), (0, 0), SCORE_SMOOTH_PX)
@@ -228,16 +237,41 @@ def normalise_render(render_grey: FloatImage, white: float) -> U8:
     return smooth(to_u8(render_grey, white))
 
 
-def contrast_scale(grey: FloatImage, sigma_px: float = LCN_SIGMA_PX) -> FloatImage:
-    """The divisor of :func:`local_normalise`: local standard deviation plus a floor."""
-    g = cv2.GaussianBlur(grey.astype(np.float32), (0, 0), DENOISE_SIGMA_PX)
+def contrast_scale(
+    grey: FloatImage, sigma_px: float = LCN_SIGMA_PX, box: Box | None = None
+) -> FloatImage:
+    """The divisor of :func:`local_normalise`: local standard deviation plus a floor.
+
+    ``box``: ``grey`` is flat (the sky) outside that part, far enough from what it shows for
+    the blurs not to reach (a render's window grown by :data:`BLUR_REACH_PX`): only the box is
+    computed, and the rest set to what the whole image's computation gives there, the floor.
+    """
+    part = grey if box is None else box.of(grey)
+    g = cv2.GaussianBlur(part.astype(np.float32), (0, 0), DENOISE_SIGMA_PX)
     d = g - cv2.GaussianBlur(g, (0, 0), sigma_px)
     std = np.sqrt(cv2.GaussianBlur(d * d, (0, 0), sigma_px))
-    return std + LCN_FLOOR * float(np.percentile(std, 99)) + 1e-6
+    flat = 0 if box is None else grey.shape[0] * grey.shape[1] - std.size
+    floor = LCN_FLOOR * _percentile_above_zeros(std, 99.0, flat)
+    scale = std + floor + 1e-6
+    return scale if box is None else box.paste(scale, grey.shape, np.float32(0) + floor + 1e-6)
+
+
+def _percentile_above_zeros(values: FloatImage, q: float, zeros: int) -> float:
+    """``np.percentile`` of ``values`` and ``zeros`` more zeros (``values`` ≥ 0), without
+    making them: the rank q % of the way through all of them, read among ``values``."""
+    if zeros == 0:
+        return float(np.percentile(values, q))
+    rank = q / 100.0 * (values.size + zeros - 1) - zeros
+    if rank <= 0.0:
+        return 0.0
+    return float(np.percentile(values, 100.0 * rank / max(values.size - 1, 1)))
 
 
 def local_normalise_f(
-    grey: FloatImage, scale: FloatImage | None = None, sigma_px: float = LCN_SIGMA_PX
+    grey: FloatImage,
+    scale: FloatImage | None = None,
+    sigma_px: float = LCN_SIGMA_PX,
+    box: Box | None = None,
 ) -> FloatImage:
     """Local contrast normalisation, (I − G∗I) / s, in local standard deviations (float).
 
@@ -247,11 +281,16 @@ def local_normalise_f(
     (from :func:`contrast_scale` of the noise-free render) should be shared by the two images:
     a scale measured on a noisy reference is inflated most where the signal (and its shot
     noise) is strongest, which pulls every edge towards its bright side.
+
+    ``box``: only that part is computed (see :func:`contrast_scale`), 0 elsewhere: exact for
+    a render on the sky, for a reference what it shows there is left out.
     """
-    g = cv2.GaussianBlur(grey.astype(np.float32), (0, 0), DENOISE_SIGMA_PX)
+    part = grey if box is None else box.of(grey)
+    g = cv2.GaussianBlur(part.astype(np.float32), (0, 0), DENOISE_SIGMA_PX)
     d = g - cv2.GaussianBlur(g, (0, 0), sigma_px)
-    s = contrast_scale(grey, sigma_px) if scale is None else scale
-    return (d / s).astype(np.float32)
+    s = contrast_scale(grey, sigma_px, box) if scale is None else scale
+    out = (d / (s if box is None else box.of(s))).astype(np.float32)
+    return out if box is None else box.paste(out, grey.shape)
 
 
 def local_normalise(
@@ -261,9 +300,12 @@ def local_normalise(
     return normalised_to_u8(local_normalise_f(grey, scale, sigma_px))
 
 
-def normalised_to_u8(normalised: FloatImage) -> U8:
-    """A :func:`local_normalise_f` image as :func:`local_normalise` gives it."""
-    return np.clip(128.0 + LCN_GAIN * normalised, 0, 255).astype(np.uint8)
+def normalised_to_u8(normalised: FloatImage, box: Box | None = None) -> U8:
+    """A :func:`local_normalise_f` image as :func:`local_normalise` gives it (``box``: the
+    part it shows, 0 elsewhere)."""
+    part = normalised if box is None else box.of(normalised)
+    out = np.clip(128.0 + LCN_GAIN * part, 0, 255).astype(np.uint8)
+    return out if box is None else box.paste(out, normalised.shape, 128)
 
 
 def smooth(img: U8) -> U8:
