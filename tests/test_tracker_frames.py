@@ -40,3 +40,55 @@ def test_a_tracked_frame_learns_from_perturbations_with_the_tracker_spp() -> Non
 def test_more_samples_asked_for_are_kept() -> None:
     session, _ = _tracked_session(perturbation_spp=4 * TRACK_PERTURBATION_SPP)
     assert session.options.perturbation_spp == 4 * TRACK_PERTURBATION_SPP
+
+
+def _scripted_tracker(frames: list[tuple[str, float]]) -> Tracker:
+    """A tracker whose frames come out as scripted: (status, attitude about z in deg); the
+    velocity logic of Tracker.track is what runs."""
+    from schemas.camera import Camera
+    from schemas.estimate import EstimateRequest
+    from worker.align.tracker import FrameResult
+    from schemas.pose import Pose
+    from worker.engine.posemath import axis_angle_to_matrix
+
+    script = iter(frames)
+
+    def next_frame(*args: object) -> FrameResult:
+        status, deg = next(script)
+        R = axis_angle_to_matrix([0.0, 0.0, 1.0], np.radians(deg))
+        return FrameResult(0, R, T0, status, status != "lost", 0.0, 1, 0.1, 0.99, 50)
+
+    tracker = Tracker.__new__(Tracker)
+    camera = Camera(width=64, height=64, fx=60.0, fy=60.0, cx=31.5, cy=31.5)
+    initial = Pose(t=list(map(float, T0)), quaternion=[1.0, 0.0, 0.0, 0.0])
+    tracker.request = EstimateRequest(camera=camera, initial_pose=initial)
+    tracker.poses, tracker._velocity, tracker._misalignment = [], None, []
+    tracker._memory = None  # every frame goes through _full, scripted
+    tracker._full = next_frame  # type: ignore[method-assign]
+    image = np.zeros((64, 64), np.float32)
+    for _ in frames:
+        tracker.track(image)
+    return tracker
+
+
+def _predicted_deg(tracker: Tracker) -> float:
+    from worker.engine.metrics import rotation_error_deg
+
+    return rotation_error_deg(np.eye(3), tracker.predicted()[0])
+
+
+def test_the_first_motion_is_a_velocity_even_into_a_re_initialised_frame() -> None:
+    # frame 1 was lost by the tracker and re-initialised: its motion is all there is to go on
+    tracker = _scripted_tracker([("reinitialised", 0.0), ("reinitialised", 2.0)])
+    np.testing.assert_allclose(_predicted_deg(tracker), 4.0, atol=1e-6)
+
+
+def test_a_jump_is_not_a_velocity() -> None:
+    # the first motion too large to be one: the next frame starts where the last ended
+    tracker = _scripted_tracker([("reinitialised", 0.0), ("reinitialised", 12.0)])
+    np.testing.assert_allclose(_predicted_deg(tracker), 12.0, atol=1e-6)
+    # once tracked frames give a velocity, a re-initialised frame's motion does not replace it
+    tracker = _scripted_tracker(
+        [("reinitialised", 0.0), ("tracked", 1.0), ("tracked", 2.0), ("reinitialised", 5.0)]
+    )
+    np.testing.assert_allclose(_predicted_deg(tracker), 6.0, atol=1e-6)

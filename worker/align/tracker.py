@@ -87,6 +87,13 @@ TRACK_PERTURBATION_SPP = 16
 #: steps of 0.3–0.5 px still gained 0.1–0.2° from a trial).
 LINEAR_STEP_PX = 0.25
 
+#: Until a frame has been tracked there is no velocity, and the motion into a re-initialised
+#: frame (the first tracked frame was lost: the target moves fast) is taken as one, unless it
+#: turned more than this (a jump). Without it the next frame started a whole frame behind
+#: again: on an Aura tumble of 2° per frame (`combined`, sequence seed 100) frame 1 was lost
+#: and frames 2 and 3 ended 0.56° and 0.54° off, converged.
+FIRST_VELOCITY_MAX_DEG = 6.0
+
 #: The LM's stop rules that count as converged.
 CONVERGED = ("step_below_epsilon", "cost_converged", "linear_step")
 
@@ -158,8 +165,12 @@ class Tracker:
             frame = self._full(image, (R0, t0), truth, index, start, "reinitialised")
         else:
             frame = self._tracked(image, truth, index, start)
-        if frame.status == "tracked" and self.poses:
-            self._velocity = increment_between(*self.poses[-1], frame.R, frame.t)
+        if self.poses and frame.status != "lost":
+            motion = increment_between(*self.poses[-1], frame.R, frame.t)
+            if frame.status == "tracked" or (
+                self._velocity is None and _turn_deg(motion) <= FIRST_VELOCITY_MAX_DEG
+            ):
+                self._velocity = motion
         self.poses.append((frame.R, frame.t))
         if frame.status != "lost":
             self._misalignment.append(1.0 - frame.alignment_score)
@@ -174,7 +185,8 @@ class Tracker:
     def predicted(self) -> Pose:
         """The next pose by constant velocity: the last pose moved by the last tracked frame's
         motion (the last pose itself before any). The motion into a re-initialised frame is
-        not a velocity: after a jump it would predict the jump again."""
+        not a velocity (after a jump it would predict the jump again), unless there is none
+        yet (see FIRST_VELOCITY_MAX_DEG)."""
         R1, t1 = self.poses[-1]
         if self._velocity is None:
             return R1, t1
@@ -364,3 +376,8 @@ class Tracker:
             index, R, t, "lost", False, time.perf_counter() - start, 0, 0.0, -1.0, 0,
             None, errors_between(truth, R, t),
         )  # fmt: skip
+
+
+def _turn_deg(increment: Array) -> float:
+    """The rotation (deg) of a pose increment [δq (Gibbs), δt]."""
+    return float(np.degrees(2.0 * np.arctan(np.linalg.norm(increment[:3]))))
