@@ -6,8 +6,13 @@ from __future__ import annotations
 import numpy as np
 from test_refine import R0, T0, make_session
 
+from schemas.camera import Camera
+from schemas.estimate import EstimateRequest
+from schemas.pose import Pose
 from worker.align.session import Session
-from worker.align.tracker import FRAME_ITERATIONS, TRACK_PERTURBATION_SPP, Tracker
+from worker.align.tracker import FRAME_ITERATIONS, TRACK_PERTURBATION_SPP, FrameResult, Tracker
+from worker.engine.metrics import rotation_error_deg
+from worker.engine.posemath import axis_angle_to_matrix
 
 
 def _tracked_session(perturbation_spp: int) -> tuple[Session, list[int]]:
@@ -45,12 +50,6 @@ def test_more_samples_asked_for_are_kept() -> None:
 def _scripted_tracker(frames: list[tuple[str, float]]) -> Tracker:
     """A tracker whose frames come out as scripted: (status, attitude about z in deg); the
     velocity logic of Tracker.track is what runs."""
-    from schemas.camera import Camera
-    from schemas.estimate import EstimateRequest
-    from worker.align.tracker import FrameResult
-    from schemas.pose import Pose
-    from worker.engine.posemath import axis_angle_to_matrix
-
     script = iter(frames)
 
     def next_frame(*args: object) -> FrameResult:
@@ -72,8 +71,6 @@ def _scripted_tracker(frames: list[tuple[str, float]]) -> Tracker:
 
 
 def _predicted_deg(tracker: Tracker) -> float:
-    from worker.engine.metrics import rotation_error_deg
-
     return rotation_error_deg(np.eye(3), tracker.predicted()[0])
 
 
