@@ -166,11 +166,12 @@ class Tracker:
         else:
             frame = self._tracked(image, truth, index, start)
         if self.poses and frame.status != "lost":
-            motion = increment_between(*self.poses[-1], frame.R, frame.t)
+            R1, t1 = self.poses[-1]
+            first = self._velocity is None
             if frame.status == "tracked" or (
-                self._velocity is None and _turn_deg(motion) <= FIRST_VELOCITY_MAX_DEG
+                first and rotation_error_deg(R1, frame.R) <= FIRST_VELOCITY_MAX_DEG
             ):
-                self._velocity = motion
+                self._velocity = increment_between(R1, t1, frame.R, frame.t)
         self.poses.append((frame.R, frame.t))
         if frame.status != "lost":
             self._misalignment.append(1.0 - frame.alignment_score)
@@ -376,8 +377,3 @@ class Tracker:
             index, R, t, "lost", False, time.perf_counter() - start, 0, 0.0, -1.0, 0,
             None, errors_between(truth, R, t),
         )  # fmt: skip
-
-
-def _turn_deg(increment: Array) -> float:
-    """The rotation (deg) of a pose increment [δq (Gibbs), δt]."""
-    return float(np.degrees(2.0 * np.arctan(np.linalg.norm(increment[:3]))))
