@@ -40,10 +40,11 @@ MIN_SKY_PX = 50
 LCN_SIGMA_PX = 4.0
 LCN_GAIN = 40.0
 LCN_FLOOR = 0.3
-#: How far (px) the blurs of local contrast normalisation reach, chained, at full resolution
-#: (3 σ of each: DENOISE_SIGMA_PX, then LCN_SIGMA_PX twice, and a blur of up to 4 px to match a
-#: reference's sharpness): the margin a box of a render on the sky needs for its normalisation
-#: to equal the whole image's.
+#: How far (px) the blurs of local contrast normalisation reach, chained: 3 σ of each of the
+#: reference-sharpness blur (≤ worker.align.blur.BLUR_MAX_PX), DENOISE_SIGMA_PX and LCN_SIGMA_PX
+#: twice is 32 px; OpenCV's float kernels end at 4 σ (43 px), and a sky window adds its own
+#: margin (≥ 8 px of sky on each side of the target). The margin a box of a render on the sky
+#: needs for its normalisation to equal the whole image's.
 BLUR_REACH_PX = 40
 
 
