@@ -19,7 +19,7 @@ def test_bench_sequences_rejects_an_unknown_motion(tmp_path: Path) -> None:
 @pytest.mark.slow
 def test_bench_sequences_pairs_the_tracker_with_chained_estimates(tmp_path: Path) -> None:
     out = proxpose(
-        "bench", "--sequences", "approach", "--models", "demo", "--frames", "4", "--size", "128",
+        "bench", "--sequences", "approach", "--models", "demo", "--frames", "4", "--size", "192",
         "--references", "tone", "--output", str(tmp_path), timeout=600,
     )  # fmt: skip
     assert out.returncode == 0, out.stderr
@@ -30,13 +30,17 @@ def test_bench_sequences_pairs_the_tracker_with_chained_estimates(tmp_path: Path
     ]
     track, chained = rows
     assert track["frames"] == chained["frames"] == 4
-    # every chained frame is a full estimate; one that fails (at 128 px the demo satellite far
-    # down the approach can show too few features) is recorded lost, the bench goes on
+    # every chained frame is a full estimate; one that fails (the demo satellite far down the
+    # approach can show too few features at this size) is recorded lost, the bench goes on
     assert chained["reinitialised"] + chained["lost"] == 4 and chained["reinitialised"] >= 1
+    # At 128 px (this test's size until 2026-12-05) the first frame's target, its panels seen
+    # edge on, was a 30-px box: on an Intel Xeon every tracked frame fell to the referee (its
+    # alignment 0.975 against full estimates' 0.995) where an AMD EPYC had tracked some. At
+    # 192 px, suite seeds 0–3 track 2–3 of the 3 frames on that Xeon.
     assert track["tracked"] >= 1
     # a tracked frame costs less than a full estimate (the average over all frames mixes in the
-    # re-initialisations, full estimates on the whole image, which at 128 px are half the
-    # frames and cost more than the chained estimates on their refinement's window)
+    # re-initialisations, full estimates on the whole image, which cost more than the chained
+    # estimates on their refinement's window)
     assert track["render_cost_per_tracked_frame"] < chained["render_cost_per_frame"]
     assert "| demo | approach | tone | track |" in (tmp_path / "sequences.md").read_text()
 
