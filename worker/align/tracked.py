@@ -50,6 +50,8 @@ MEASURE_MAX_LEFT_PX = 0.25
 MATCH_POOL = 200
 #: Edge points used at most, per corner allowed.
 EDGES_PER_CORNER = 3
+#: Relative blur (Gaussian σ, px) below which the render is left as it is.
+BLUR_MIN_PX = 0.05
 
 
 class Features(Protocol):
@@ -80,6 +82,15 @@ class TrackedFeatures:
         # Equal sharpness too: a corner blurred differently in the two images sits elsewhere.
         # Blur acts on light, so it is measured and applied in linear units, then encoded.
         self.blur_render = relative_blur(ref_linear, to_grey(view.linear))
+        if self.blur_render > BLUR_MIN_PX:
+            # The curve again, against the render at the reference's sharpness: against the
+            # sharp one, the light a softer reference spreads into the render's flat dark parts
+            # bent the curve's foot (dark levels mapped 10-15 % too low: a gamma) and moved
+            # corners outwards (0.06 px at σ = 1 px: 0.3-0.5° from the truth on Aura).
+            self.tone_curve = reference_tone_curve(
+                session.ref_image, _blurred(view.linear, self.blur_render)
+            )
+            ref_linear = srgb_decode(on_render_scale(session.ref_image, self.tone_curve))
         self.scale = contrast_scale(self._render_grey(view), box=work_box(view))
         ref_grey = srgb_encode(ref_linear)
         self.ref8 = local_normalise(ref_grey, self.scale)
@@ -151,7 +162,7 @@ class TrackedFeatures:
 
     def _render_grey(self, view: RenderedView) -> Array:
         """The render's grey at the reference's sharpness (kept for the last view)."""
-        if self.blur_render <= 0.05:
+        if self.blur_render <= BLUR_MIN_PX:
             return view.grey
         if self._grey is None or self._grey[0] is not view:
             box = work_box(view)
@@ -218,7 +229,7 @@ def work_box(view: RenderedView) -> Box | None:
 
 
 def _blurred(img: Array, sigma_px: float) -> Array:
-    return cv2.GaussianBlur(img, (0, 0), sigma_px) if sigma_px > 0.05 else img
+    return cv2.GaussianBlur(img, (0, 0), sigma_px) if sigma_px > BLUR_MIN_PX else img
 
 
 class MatchedFeatures:
