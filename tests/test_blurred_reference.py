@@ -6,8 +6,8 @@ a Gaussian of σ = 1 px, encoded to 8 bits: the blur is the only difference, so 
 the true pose beyond what a sharp reference leaves is the pipeline's. Before the tone curve was
 fitted against the render blurred to the reference's sharpness, the light the blur spreads into
 the render's flat dark parts bent the curve's foot and the corners sat 0.036-0.052 px (median)
-from where they are, 0.017-0.024 px of it outwards (a larger target): 0.3-0.5° of drift from the
-truth on Aura. Now 0.018-0.021 px, as with a sharp reference, and none outwards.
+from where they are, 0.017-0.024 px of it outwards (a larger target): Aura views started at the
+truth ended up to 0.49° off. Now 0.018-0.021 px, as with a sharp reference, and none outwards.
 """
 
 from __future__ import annotations
@@ -53,7 +53,8 @@ def _corner_misfit(renderer: Renderer, R: np.ndarray, t: np.ndarray) -> tuple[fl
     corners = np.arange(len(h)) < len(feats.corners)
     d = (h - feats.x_ref)[ok & corners]
     x = feats.x_ref[ok & corners]
-    out = (x - x.mean(axis=0)) / np.linalg.norm(x - x.mean(axis=0), axis=1, keepdims=True)
+    radial = x - x.mean(axis=0)
+    out = radial / np.linalg.norm(radial, axis=1, keepdims=True)
     assert len(d) >= 50
     outward = float(np.einsum("ki,ki->k", d, out).mean())
     return feats.blur_render, float(np.median(np.hypot(*d.T))), outward

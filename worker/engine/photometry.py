@@ -76,7 +76,10 @@ def fit_tone_curve(
     misalignment of a pixel or two does not matter. The knots bin the *render* (noise-free)
     levels by quantile and take the median reference level in each bin: binning by the noisy
     image instead would flatten the curve (regression dilution) and bend every edge. Unlike
-    histogram matching, content differences (blur, a few occluded pixels) do not bend it either.
+    histogram matching, a few occluded pixels do not bend it either. A difference in sharpness
+    does: the light a softer reference spreads into the render's flat dark parts lowers the
+    curve's foot, so the render should be at the reference's sharpness (worker.align.tracked
+    fits the curve again once it has measured the blur).
     """
     a = cv2.GaussianBlur(reference.astype(np.float32), (0, 0), TONE_SMOOTH_PX)
     b = cv2.GaussianBlur(render.astype(np.float32), (0, 0), TONE_SMOOTH_PX)
