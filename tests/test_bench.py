@@ -283,6 +283,27 @@ def test_drift_and_calibration_come_from_their_own_records() -> None:
     assert s["rotation_within_3_sigma"] == pytest.approx(2 / 3)
 
 
+def test_drift_bias_and_spread_come_from_each_cases_seeds() -> None:
+    """Ends from the truth as rotation vectors: a case whose seeds all go one way has a bias
+    and no spread; one whose seeds scatter around the truth, a spread and no bias. The drift's
+    own columns stay those of the first seed."""
+
+    def end(case: str, seed: int, v: list[float]) -> dict[str, Any]:
+        rot = float(np.linalg.norm(v))
+        r = {**record("default", rot, 0.01), "case_id": case, "start": "truth"}
+        return r | {"seed_index": seed, "rotation_vector_deg": v}
+
+    biased = [end("a", k, [0.05, 0.0, 0.0]) for k in range(3)]
+    scattered = [end("b", k, [0.0, s, 0.0]) for k, s in enumerate((0.02, -0.02))]
+    s = method_stats(biased + scattered)
+    assert s["drift_cases"] == 2 and s["drift_seeds"] == 3
+    assert s["drift_rotation_deg_median"] == pytest.approx(0.035)  # first seeds: 0.05, 0.02
+    assert s["drift_bias_deg_median"] == pytest.approx(0.025)  # 0.05 and 0
+    assert s["drift_spread_deg_median"] == pytest.approx(0.01)  # 0 and 0.02
+    one = method_stats([end("a", 0, [0.05, 0.0, 0.0]), end("b", 0, [0.0, 0.02, 0.0])])
+    assert one["drift_seeds"] == 1 and one["drift_bias_deg_median"] is None
+
+
 def test_robustness_summary_groups_by_class_and_kind() -> None:
     records = [
         {**record(m, 0.1, 0.1), "reference": ref, "start": start}
@@ -345,6 +366,10 @@ def test_quick_robustness_bench_reports_drift(tmp_path: Path) -> None:
         "faceted,jpeg",
         "--methods",
         "default,pnp",
+        "--truth-seeds",
+        "2",
+        "--save-cases",
+        "all",
         "--output",
         str(tmp_path / "out"),
         env={"PROXPOSE_DATA_DIR": str(tmp_path / "data")},
@@ -353,17 +378,29 @@ def test_quick_robustness_bench_reports_drift(tmp_path: Path) -> None:
     assert out.returncode == 0, out.stderr[-3000:]
     data = json.loads((tmp_path / "out" / "bench.json").read_text())
     cases = data["cases"]
-    assert len(cases) == 2 * 2 * 2  # classes × starts × methods
+    assert len(cases) == 2 * (1 + 2) * 2  # classes × (offset + two truth seeds) × methods
     assert {(r["reference"], r["start"]) for r in cases} == {
         (ref, start) for ref in ("faceted", "jpeg") for start in ("offset", "truth")
     }
     for r in cases:
         if r["start"] == "truth":
             assert r["initial_rotation_deg"] == pytest.approx(0.0, abs=1e-6)
+        if not r["failed"]:  # the error as a vector, as long as the angle
+            assert np.linalg.norm(r["rotation_vector_deg"]) == pytest.approx(r["rotation_deg"])
+    for ref in ("faceted", "jpeg"):  # each class's two truth estimates have seeds of their own
+        truth = [
+            r for r in cases if (r["reference"], r["start"], r["method"]) == (ref, "truth", "pnp")
+        ]
+        assert sorted(r["seed_index"] for r in truth) == [0, 1]
+        assert len({r["estimator_seed"] for r in truth}) == 2
     default = data["summary"]["by_reference"][0]["methods"]["default"]
     assert default["drift_cases"] == 1 and default["drift_rotation_deg_median"] is not None
+    assert default["drift_seeds"] == 2 and default["drift_spread_deg_median"] is not None
     md = (tmp_path / "out" / "bench.md").read_text()
-    assert "drift rot. median" in md and "#### Class `jpeg`" in md
+    assert "drift rot. median" in md and "#### Class `jpeg`" in md and "(2 seeds)" in md
+    saved = {p.name for p in (tmp_path / "out" / "cases" / "demo-faceted-00").iterdir()}
+    names = {f"request_{m}{tag}.json" for m in ("default", "pnp") for tag in ("", "_truth")}
+    assert names | {"request_default_truth_seed1.json", "reference.png"} <= saved
 
 
 # -- sizes and costs --------------------------------------------------------------------------

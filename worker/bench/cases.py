@@ -13,8 +13,6 @@ from __future__ import annotations
 
 import json
 import logging
-import os
-import re
 import time
 import zlib
 from collections.abc import Callable, Sequence
@@ -50,8 +48,6 @@ SHARED_MODEL_FILES = {
 }
 #: Horizontal and vertical field of view of the bench camera (square pixels, centred), degrees.
 CAMERA_FOV_DEG = 30.0
-#: Where failed cases are written, under the output directory.
-CASES_DIRNAME = "cases"
 
 
 class BenchSetupError(ValueError):
@@ -186,6 +182,9 @@ class CaseTask:
     fill: float = 0.6  # spacecraft: diameter / smaller image side (> 1: past the frame)
     #: Whether the case id names its size (a suite of several sizes).
     sized: bool = False
+    #: Estimates per method from the truth, each with another estimator seed (the spread of
+    #: where they end tells the bias from the seed's part: worker.bench.stats).
+    truth_seeds: int = 1
 
     @property
     def size(self) -> str:
@@ -276,12 +275,17 @@ def run_prepared(
     for start in task.starts:
         started = case if start == "offset" else _from_truth(case)
         fields = {**_case_fields(task, started), "start": start, "render_s": prepared.render_s}
-        for spec in task.methods:
-            record = run_method(model, reference, started, spec, prepared.est_seed, fields)
-            records.append(record)
-            if on_record is not None:
-                on_record(record)
+        for reseed in range(task.truth_seeds if start == "truth" else 1):
+            for spec in task.methods:
+                record = run_method(
+                    model, reference, started, spec, prepared.est_seed, fields, reseed
+                )
+                records.append(record)
+                if on_record is not None:
+                    on_record(record)
     if task.output_dir and task.save_cases != "none":
+        from worker.bench.saved import save_case
+
         save_case(task, case, records)
     return CaseOutcome(records, warmups)
 
@@ -343,14 +347,17 @@ def run_method(
     spec: MethodSpec,
     est_seed: int,
     fields: dict[str, Any],
+    reseed: int = 0,
 ) -> dict[str, Any]:
-    """One timed estimate; an engine error (or a crash) is recorded as a failed case."""
+    """One timed estimate (with the estimator seed moved on by ``reseed``); an engine error
+    (or a crash) is recorded as a failed case."""
     from worker.align.estimator import estimate
     from worker.engine.exceptions import ProxposeError
 
-    seed = spec.overrides.get("seed", est_seed)
+    seed = (spec.overrides.get("seed", est_seed) + reseed) % 2**31
     request = case.request.model_copy(update={"options": spec.options(seed=seed)})
     record: dict[str, Any] = {**fields, "method": spec.label, "estimator_seed": seed}
+    record["seed_index"] = reseed
     reset_peak_memory()
     resident = resident_memory_mb()
     start = time.perf_counter()
@@ -368,32 +375,4 @@ def run_method(
         "peak_memory_mb": (peak := peak_memory_mb()),
         "memory_rise_mb": peak - resident if peak is not None and resident is not None else None,
     }
-    return {**record, **outcome(result), **costs}
-
-
-def save_case(task: CaseTask, case: Case, records: list[dict[str, Any]]) -> None:
-    """Write the reference and one request per method (``proxpose estimate`` replays them);
-    with ``save_cases="failed"`` only cases some method did not solve, and their records get a
-    ``reproduce`` command line."""
-    from worker.bench.stats import is_success
-
-    chosen = [r for r in records if task.save_cases == "all" or not is_success(r)]
-    if not chosen or task.output_dir is None:
-        return
-    import cv2
-
-    folder = Path(task.output_dir) / CASES_DIRNAME / task.case_id
-    folder.mkdir(parents=True, exist_ok=True)
-    cv2.imwrite(str(folder / "reference.png"), case.reference[..., ::-1])
-    specs = {s.label: s for s in task.methods}
-    for record in chosen:
-        spec = specs[record["method"]]
-        name = "request_" + re.sub(r"[^A-Za-z0-9]+", "_", spec.label) + ".json"
-        options = spec.options(seed=record["estimator_seed"])
-        request = case.request.model_copy(update={"options": options})
-        (folder / name).write_text(request.model_dump_json(indent=2, exclude_unset=True))
-        rel = os.path.relpath(folder, task.output_dir)
-        record["reproduce"] = (
-            f"proxpose estimate --model {task.model_path} --image {rel}/reference.png "
-            f"--request {rel}/{name} --output {rel}/{Path(name).stem.replace('request_', 'out_')}"
-        )
+    return {**record, **outcome(result, case.R_true), **costs}

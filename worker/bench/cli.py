@@ -138,6 +138,14 @@ def _add_suite_arguments(parser: argparse.ArgumentParser) -> None:
         "both (default: offset,truth)",
     )
     parser.add_argument(
+        "--truth-seeds",
+        type=int,
+        default=1,
+        help="estimates per case and method from the truth, each with another estimator seed: "
+        "the drift's bias (where every seed goes) and spread (what the seed decides) are "
+        "reported apart (default 1)",
+    )
+    parser.add_argument(
         "--models",
         type=_csv,
         help="demo, iss, aura, phobos, terrain, terrain-ridged or mesh paths (default: the four "

@@ -52,6 +52,7 @@ def make_config(args: argparse.Namespace) -> dict[str, Any]:
         "bands": [ROBUSTNESS_BAND[1]] if robust else args.bands,
         "references": _references(args.references) if robust else ["standard"],
         "starts": _starts(args.starts) if robust else ["offset"],
+        "truth_seeds": getattr(args, "truth_seeds", 1),
         "cases": cases if args.cases is None else args.cases,
         "sizes": [[preset["size_px"]] * 2] if args.size is None else args.size,
         "seed": args.seed,
@@ -64,7 +65,7 @@ def make_config(args: argparse.Namespace) -> dict[str, Any]:
     band_edges(config["bands"])
     if len(set(config["methods"])) != len(config["methods"]):
         raise BenchSetupError("a method is listed twice")
-    for key, lo, hi in (("cases", 1, 10_000), ("jobs", 1, 256)):
+    for key, lo, hi in (("cases", 1, 10_000), ("jobs", 1, 256), ("truth_seeds", 1, 100)):
         if not lo <= config[key] <= hi:
             raise BenchSetupError(f"{key} must be in {lo}..{hi}, got {config[key]}")
     for w, h in config["sizes"]:
@@ -187,6 +188,7 @@ def make_tasks(
             starts=plan(name)["starts"],
             terrain_view=TerrainView(**{key: tuple(config[key]) for key, *_ in _TERRAIN_RANGES}),
             fill=config["fill"],
+            truth_seeds=config.get("truth_seeds", 1),
         )
         for w, h in config["sizes"]
         for name, path in models

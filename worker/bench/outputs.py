@@ -137,7 +137,13 @@ def print_summary(summary: dict[str, Any], output_dir: Path) -> None:
                 f"{group['group']:<9} {method:<14} {s['successes']}/{s['cases']} ok  "
                 f"rot. median {num(s['rotation_deg_median'])}°  "
                 f"drift median {num(s['drift_rotation_deg_median'])}°  "
-                f"error/σ median {num(s['rotation_sigmas_median'])}"
+                + (
+                    f"bias {num(s['drift_bias_deg_median'])}° "
+                    f"spread {num(s['drift_spread_deg_median'])}°  "
+                    if s.get("drift_bias_deg_median") is not None
+                    else ""
+                )
+                + f"error/σ median {num(s['rotation_sigmas_median'])}"
             )
     for group in summary["by_band"]:
         for method, s in group["methods"].items():

@@ -5,6 +5,9 @@ from __future__ import annotations
 import math
 from typing import Any
 
+import numpy as np
+from numpy.typing import NDArray
+
 from schemas.estimate import EstimateResult
 
 
@@ -14,6 +17,7 @@ def failure(code: str, exc: Exception) -> dict[str, Any]:
         "error_code": code,
         "error": f"{type(exc).__name__}: {exc}",
         "rotation_deg": None,
+        "rotation_vector_deg": None,
         "translation_pct": None,
         "translation": None,
         "speed_score": None,
@@ -39,7 +43,19 @@ def _calibration(result: EstimateResult) -> dict[str, Any]:
     }
 
 
-def outcome(result: EstimateResult) -> dict[str, Any]:
+def rotation_vector_deg(R_est: NDArray[np.float64], R_true: NDArray[np.float64]) -> list[float]:
+    """The rotation error R̂Rᵀ as a vector (axis × angle, degrees) in the camera frame: its
+    length is ∠ΔR, and its direction tells a bias (the same for every estimator seed) from
+    scatter (worker.bench.stats)."""
+    from scipy.spatial.transform import Rotation
+
+    return [float(v) for v in np.degrees(Rotation.from_matrix(R_est @ R_true.T).as_rotvec())]
+
+
+def outcome(result: EstimateResult, R_true: NDArray[np.float64]) -> dict[str, Any]:
+    """The record of an estimate that returned (``R_true``: the case's true rotation)."""
+    from worker.engine.posemath import pose_from_schema
+
     err = result.errors
     assert err is not None  # every bench request carries the ground truth
     return {
@@ -47,6 +63,7 @@ def outcome(result: EstimateResult) -> dict[str, Any]:
         "error_code": None,
         "error": None,
         "rotation_deg": err.rotation_deg,
+        "rotation_vector_deg": rotation_vector_deg(pose_from_schema(result.pose)[0], R_true),
         "translation_pct": err.translation_pct_of_range,
         "translation": err.translation,
         "speed_score": err.speed_score,

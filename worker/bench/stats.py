@@ -6,7 +6,11 @@ Conventions (also stated in bench/README.md):
   SUCCESS_TRANSLATION_PCT of the truth.
 - Error statistics are over *all* cases of a group: an estimate that raised (too few features,
   ...) counts with its initial offset, the pose a user would be left with.
-- Drift statistics are over the estimates started at the true pose (the robustness suite).
+- Drift statistics are over the estimates started at the true pose (the robustness suite),
+  the first estimator seed's. With more seeds per case (``--truth-seeds``) each case's ends,
+  as rotation vectors, give its *bias* (the length of their mean: where any seed goes) and its
+  *spread* (their RMS distance from that mean: the part the seed decides); both are medians
+  over the cases.
 - Cost statistics (iterations, renders) are over the estimates that returned; wall seconds
   are over all of them (a failure costs time too).
 - Percentiles interpolate linearly (numpy's default); with few cases p90 is near the maximum.
@@ -74,7 +78,13 @@ def method_stats(records: list[Record]) -> Stats:
     """
     offset = [r for r in records if r.get("start", "offset") == "offset"]
     truth = [r for r in records if r.get("start") == "truth"]
-    return {**_offset_stats(offset), **_drift_stats(truth), **_calibration_stats(offset)}
+    first = [r for r in truth if not r.get("seed_index")]
+    return {
+        **_offset_stats(offset),
+        **_drift_stats(first),
+        **seed_stats(truth),
+        **_calibration_stats(offset),
+    }
 
 
 def _offset_stats(records: list[Record]) -> Stats:
@@ -117,6 +127,28 @@ def _drift_stats(records: list[Record]) -> Stats:
         "drift_rotation_deg_p90": _pct(rot, 90),
         "drift_translation_pct_median": _pct(tr, 50),
         "drift_translation_pct_p90": _pct(tr, 90),
+    }
+
+
+def seed_stats(records: list[Record]) -> Stats:
+    """Bias and spread of the ends of estimates started at the truth, per case over its
+    estimator seeds (cases with at least two that returned), median over the cases."""
+    ends: dict[str, list[list[float]]] = {}
+    for r in records:
+        if not r["failed"] and r.get("rotation_vector_deg") is not None:
+            ends.setdefault(r["case_id"], []).append(r["rotation_vector_deg"])
+    bias, spread, seeds = [], [], []
+    for vectors in ends.values():
+        if len(vectors) >= 2:
+            v = np.asarray(vectors, dtype=np.float64)
+            mean = v.mean(axis=0)
+            bias.append(float(np.linalg.norm(mean)))
+            spread.append(float(np.sqrt(np.mean(np.sum((v - mean) ** 2, axis=1)))))
+            seeds.append(len(v))
+    return {
+        "drift_seeds": max(seeds, default=1),
+        "drift_bias_deg_median": _pct(bias, 50),
+        "drift_spread_deg_median": _pct(spread, 50),
     }
 
 
