@@ -31,7 +31,7 @@ from worker.bench.costs import (
     resident_memory_mb,
 )
 from worker.bench.records import failure, outcome
-from worker.bench.synth import Case, CaseSpec, make_case
+from worker.bench.synth import Case, CaseSpec, from_truth, make_case
 from worker.bench.terrain import TERRAIN_MODELS, TerrainView, make_terrain_case, terrain_model_path
 from worker.engine.meshes import LoadedModel
 from worker.engine.metrics import rotation_error_deg, speed_score, translation_error
@@ -273,7 +273,7 @@ def run_prepared(
     _warmed.update((task.model_path, spec.label, task.size) for spec in new)
     records = []
     for start in task.starts:
-        started = case if start == "offset" else _from_truth(case)
+        started = case if start == "offset" else from_truth(case)
         fields = {**_case_fields(task, started), "start": start, "render_s": prepared.render_s}
         for reseed in range(task.truth_seeds if start == "truth" else 1):
             for spec in task.methods:
@@ -288,13 +288,6 @@ def run_prepared(
 
         save_case(task, case, records)
     return CaseOutcome(records, warmups)
-
-
-def _from_truth(case: Case) -> Case:
-    """The case with its initial guess replaced by the true pose."""
-    truth = case.request.ground_truth
-    request = case.request.model_copy(update={"initial_pose": truth})
-    return Case(case.reference, request, case.R_true, case.t_true, case.sun_true)
 
 
 def warm_up(

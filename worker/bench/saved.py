@@ -5,22 +5,43 @@ from __future__ import annotations
 
 import os
 import re
+from collections.abc import Sequence
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import Any, Protocol
 
-if TYPE_CHECKING:
-    from worker.bench.cases import CaseTask
-    from worker.bench.synth import Case
+from schemas.options import EstimateOptions
+from worker.bench.synth import Case, from_truth
 
 #: Where failed cases are written, under the output directory.
 CASES_DIRNAME = "cases"
 
 
-def save_case(task: CaseTask, case: Case, records: list[dict[str, Any]]) -> None:
+class _Method(Protocol):
+    @property
+    def label(self) -> str: ...
+
+    def options(self, **extra: Any) -> EstimateOptions: ...
+
+
+class _Task(Protocol):
+    """What of a worker.bench.cases.CaseTask saving needs (that module imports this one)."""
+
+    @property
+    def model_path(self) -> str: ...
+    @property
+    def output_dir(self) -> str | None: ...
+    @property
+    def save_cases(self) -> str: ...
+    @property
+    def methods(self) -> Sequence[_Method]: ...
+    @property
+    def case_id(self) -> str: ...
+
+
+def save_case(task: _Task, case: Case, records: list[dict[str, Any]]) -> None:
     """Write the reference and one request per method (``proxpose estimate`` replays them);
     with ``save_cases="failed"`` only cases some method did not solve, and their records get a
     ``reproduce`` command line."""
-    from worker.bench.cases import _from_truth
     from worker.bench.stats import is_success
 
     chosen = [r for r in records if task.save_cases == "all" or not is_success(r)]
@@ -41,7 +62,7 @@ def save_case(task: CaseTask, case: Case, records: list[dict[str, Any]]) -> None
         )
         name = "request_" + re.sub(r"[^A-Za-z0-9]+", "_", spec.label) + tag + ".json"
         options = spec.options(seed=record["estimator_seed"])
-        started = _from_truth(case) if truth else case
+        started = from_truth(case) if truth else case
         request = started.request.model_copy(update={"options": options})
         (folder / name).write_text(request.model_dump_json(indent=2, exclude_unset=True))
         rel = os.path.relpath(folder, task.output_dir)

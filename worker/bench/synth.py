@@ -50,6 +50,13 @@ class Case:
     sun_true: Array  # the sun the reference was rendered with (the request's is off by sun_error)
 
 
+def from_truth(case: Case) -> Case:
+    """The case with its initial guess replaced by the true pose."""
+    truth = case.request.ground_truth
+    request = case.request.model_copy(update={"initial_pose": truth})
+    return Case(case.reference, request, case.R_true, case.t_true, case.sun_true)
+
+
 def random_rotation(rng: np.random.Generator) -> Array:
     q = rng.normal(size=4)
     from worker.engine.posemath import quaternion_to_matrix

@@ -1,0 +1,149 @@
+"""The robustness suite of ``proxpose bench`` (worker/bench/references.py): drift, its bias and
+spread over estimator seeds, the class groups, and ``--robustness --quick`` end to end."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pytest
+from test_bench import QUICK_TIMEOUT_S, REPO, proxpose, record, rows_of
+
+from worker.bench.report import markdown
+from worker.bench.stats import method_stats, summarize
+
+
+def test_drift_and_calibration_come_from_their_own_records() -> None:
+    offset = [
+        {**record("default", 0.1 * k, 0.1), "start": "offset", "rotation_sigmas": float(k)}
+        for k in (1, 2, 4)
+    ]
+    truth = [{**record("default", d, 0.01), "start": "truth"} for d in (0.02, 0.03, 0.05)]
+    s = method_stats(offset + truth)
+    assert s["cases"] == 3 and s["drift_cases"] == 3  # the truth starts are not cases
+    assert s["rotation_deg_median"] == pytest.approx(0.2)
+    assert s["drift_rotation_deg_median"] == pytest.approx(0.03)
+    assert s["rotation_sigmas_median"] == pytest.approx(2.0)
+    assert s["rotation_within_3_sigma"] == pytest.approx(2 / 3)
+
+
+def test_drift_bias_and_spread_come_from_each_cases_seeds() -> None:
+    """Ends from the truth as rotation vectors: a case whose seeds all go one way has a bias
+    and no spread; one whose seeds scatter around the truth, a spread and no bias. The drift's
+    own columns stay those of the first seed."""
+
+    def end(case: str, seed: int, v: list[float]) -> dict[str, Any]:
+        rot = float(np.linalg.norm(v))
+        r = {**record("default", rot, 0.01), "case_id": case, "start": "truth"}
+        return r | {"seed_index": seed, "rotation_vector_deg": v}
+
+    biased = [end("a", k, [0.05, 0.0, 0.0]) for k in range(3)]
+    scattered = [end("b", k, [0.0, s, 0.0]) for k, s in enumerate((0.02, -0.02))]
+    s = method_stats(biased + scattered)
+    assert s["drift_cases"] == 2 and s["drift_seeds"] == 3
+    assert s["drift_rotation_deg_median"] == pytest.approx(0.035)  # first seeds: 0.05, 0.02
+    assert s["drift_bias_deg_median"] == pytest.approx(0.025)  # 0.05 and 0
+    assert s["drift_spread_deg_median"] == pytest.approx(0.01)  # 0 and 0.02
+    one = method_stats([end("a", 0, [0.05, 0.0, 0.0]), end("b", 0, [0.0, 0.02, 0.0])])
+    assert one["drift_seeds"] == 1 and one["drift_bias_deg_median"] is None
+
+
+def test_robustness_summary_groups_by_class_and_kind() -> None:
+    records = [
+        {**record(m, 0.1, 0.1), "reference": ref, "start": start}
+        for m in ("default", "pnp")
+        for ref in ("faceted", "jpeg")  # a tuned class and a held-out one
+        for start in ("offset", "truth")
+    ]
+    summary = summarize(records, ["default", "pnp"])
+    assert summary["by_band"] == []  # no standard references
+    assert [g["group"] for g in summary["by_reference"]] == ["faceted", "jpeg"]
+    assert {g["group"] for g in summary["by_reference_kind"]} == {"tuned", "held out"}
+    config: dict[str, Any] = {"methods": ["default", "pnp"], "models": ["m"], "cases": 1}
+    config |= {"sizes": [[64, 64]], "offsets": "uniform", "seed": 0}
+    env: dict[str, Any] = {"command": "proxpose bench", "started_at": "now", "variant": "v"}
+    env |= {"git_commit": "abc", "cpu_model": "cpu", "cpus_available": 2}
+    md = markdown(summary, config, env)
+    assert "#### Class `faceted`" in md and "#### All held out classes" in md
+    assert rows_of(md, "pnp") == 4  # two classes and two kinds
+
+
+def test_bench_rejects_an_unknown_reference_class(tmp_path: Path) -> None:
+    out = proxpose("bench", "--references", "faceted,cubist", "--output", str(tmp_path))
+    assert out.returncode == 2
+    assert "cubist" in out.stderr and "faceted" in out.stderr  # names the known ones
+
+
+def test_every_reference_class_renders_something_else(variant: str) -> None:
+    """Each class's reference differs from the estimator's own render of the same case, and
+    the classes differ from one another (the same seed: the same pose and sun)."""
+    from worker.bench.cases import bench_camera
+    from worker.bench.references import REFERENCE_CLASSES
+    from worker.bench.synth import CaseSpec, make_case
+    from worker.demo.satellite import demo_satellite_path
+    from worker.engine.meshes import load_model
+
+    model = load_model(demo_satellite_path(REPO / "data"))
+    images = {
+        name: make_case(model, bench_camera(96), CaseSpec(5.0, 0.05), 11, reference=name)
+        for name in REFERENCE_CLASSES
+    }
+    truths = {(tuple(c.R_true.ravel()), tuple(c.t_true)) for c in images.values()}
+    assert len(truths) == 1  # paired across classes
+    pixels = {name: c.reference.astype(np.float64) for name, c in images.items()}
+    for name, img in pixels.items():
+        assert img.shape == (96, 96, 3) and img.max() > 50, name  # the target is visible
+    names = list(pixels)
+    for i, a in enumerate(names):
+        for b in names[i + 1 :]:
+            target = (pixels[a] > 8) | (pixels[b] > 8)  # over the target, not the black sky
+            assert np.abs(pixels[a] - pixels[b])[target].mean() > 0.2, (a, b)
+
+
+@pytest.mark.slow
+def test_quick_robustness_bench_reports_drift(tmp_path: Path) -> None:
+    out = proxpose(
+        "bench",
+        "--robustness",
+        "--quick",
+        "--references",
+        "faceted,jpeg",
+        "--methods",
+        "default,pnp",
+        "--truth-seeds",
+        "2",
+        "--save-cases",
+        "all",
+        "--output",
+        str(tmp_path / "out"),
+        env={"PROXPOSE_DATA_DIR": str(tmp_path / "data")},
+        timeout=QUICK_TIMEOUT_S,
+    )
+    assert out.returncode == 0, out.stderr[-3000:]
+    data = json.loads((tmp_path / "out" / "bench.json").read_text())
+    cases = data["cases"]
+    assert len(cases) == 2 * (1 + 2) * 2  # classes × (offset + two truth seeds) × methods
+    assert {(r["reference"], r["start"]) for r in cases} == {
+        (ref, start) for ref in ("faceted", "jpeg") for start in ("offset", "truth")
+    }
+    for r in cases:
+        if r["start"] == "truth":
+            assert r["initial_rotation_deg"] == pytest.approx(0.0, abs=1e-6)
+        if not r["failed"]:  # the error as a vector, as long as the angle
+            assert np.linalg.norm(r["rotation_vector_deg"]) == pytest.approx(r["rotation_deg"])
+    for ref in ("faceted", "jpeg"):  # each class's two truth estimates have seeds of their own
+        truth = [
+            r for r in cases if (r["reference"], r["start"], r["method"]) == (ref, "truth", "pnp")
+        ]
+        assert sorted(r["seed_index"] for r in truth) == [0, 1]
+        assert len({r["estimator_seed"] for r in truth}) == 2
+    default = data["summary"]["by_reference"][0]["methods"]["default"]
+    assert default["drift_cases"] == 1 and default["drift_rotation_deg_median"] is not None
+    assert default["drift_seeds"] == 2 and default["drift_spread_deg_median"] is not None
+    md = (tmp_path / "out" / "bench.md").read_text()
+    assert "drift rot. median" in md and "#### Class `jpeg`" in md and "(2 seeds)" in md
+    saved = {p.name for p in (tmp_path / "out" / "cases" / "demo-faceted-00").iterdir()}
+    names = {f"request_{m}{tag}.json" for m in ("default", "pnp") for tag in ("", "_truth")}
+    assert names | {"request_default_truth_seed1.json", "reference.png"} <= saved
