@@ -76,6 +76,16 @@ def test_bench_rejects_an_unknown_reference_class(tmp_path: Path) -> None:
     assert "cubist" in out.stderr and "faceted" in out.stderr  # names the known ones
 
 
+@pytest.mark.parametrize("args", [(), ("--robustness", "--starts", "offset")])
+def test_bench_rejects_truth_seeds_without_a_start_at_the_truth(
+    args: tuple[str, ...], tmp_path: Path
+) -> None:
+    out = proxpose("bench", *args, "--truth-seeds", "3", "--output", str(tmp_path))
+    assert out.returncode == 2
+    assert "--truth-seeds" in out.stderr and "truth" in out.stderr
+    assert not (tmp_path / "bench.json").exists()  # nothing ran
+
+
 def test_every_reference_class_renders_something_else(variant: str) -> None:
     """Each class's reference differs from the estimator's own render of the same case, and
     the classes differ from one another (the same seed: the same pose and sun)."""
