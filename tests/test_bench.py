@@ -43,6 +43,22 @@ def proxpose(*args: str, env: dict[str, str] | None = None, timeout: float = 60)
     )
 
 
+def run_bench(root: Path, *args: str) -> Path:
+    """``proxpose bench ARGS`` writing under ``root`` (the output and the demo model's data
+    directory), which must succeed; its output directory."""
+    out = proxpose(
+        "bench",
+        *args,
+        "--output",
+        str(root / "out"),
+        env={"PROXPOSE_DATA_DIR": str(root / "data")},
+        timeout=QUICK_TIMEOUT_S,
+    )
+    assert out.returncode == 0, out.stderr[-3000:]
+    assert "bench.json" in out.stdout
+    return root / "out"
+
+
 # -- pure parts -------------------------------------------------------------------------------
 def test_parse_method_reads_overrides_as_json() -> None:
     spec = parse_method("default:n_samples=24:reuse_jacobian=false:detector=sift")
@@ -217,18 +233,7 @@ def test_bench_sequences_look_for_models_in_models_dir(tmp_path: Path) -> None:
 @pytest.fixture(scope="module")
 def quick_run(tmp_path_factory: pytest.TempPathFactory) -> Path:
     """``proxpose bench --quick`` once for the tests below; its output directory."""
-    root = tmp_path_factory.mktemp("bench")
-    out = proxpose(
-        "bench",
-        "--quick",
-        "--output",
-        str(root / "out"),
-        env={"PROXPOSE_DATA_DIR": str(root / "data")},
-        timeout=QUICK_TIMEOUT_S,
-    )
-    assert out.returncode == 0, out.stderr[-3000:]
-    assert "bench.json" in out.stdout
-    return root / "out"
+    return run_bench(tmp_path_factory.mktemp("bench"), "--quick")
 
 
 @pytest.mark.slow

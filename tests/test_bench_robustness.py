@@ -9,7 +9,7 @@ from typing import Any
 
 import numpy as np
 import pytest
-from test_bench import QUICK_TIMEOUT_S, REPO, proxpose, record, rows_of
+from test_bench import REPO, proxpose, record, rows_of, run_bench
 
 from worker.bench.report import markdown
 from worker.bench.stats import method_stats, summarize
@@ -114,25 +114,12 @@ def test_every_reference_class_renders_something_else(variant: str) -> None:
 
 @pytest.mark.slow
 def test_quick_robustness_bench_reports_drift(tmp_path: Path) -> None:
-    out = proxpose(
-        "bench",
-        "--robustness",
-        "--quick",
-        "--references",
-        "faceted,jpeg",
-        "--methods",
-        "default,pnp",
-        "--truth-seeds",
-        "2",
-        "--save-cases",
-        "all",
-        "--output",
-        str(tmp_path / "out"),
-        env={"PROXPOSE_DATA_DIR": str(tmp_path / "data")},
-        timeout=QUICK_TIMEOUT_S,
+    out = run_bench(
+        tmp_path,
+        *("--robustness", "--quick", "--references", "faceted,jpeg", "--methods", "default,pnp"),
+        *("--truth-seeds", "2", "--save-cases", "all"),
     )
-    assert out.returncode == 0, out.stderr[-3000:]
-    data = json.loads((tmp_path / "out" / "bench.json").read_text())
+    data = json.loads((out / "bench.json").read_text())
     cases = data["cases"]
     assert len(cases) == 2 * (1 + 2) * 2  # classes × (offset + two truth seeds) × methods
     assert {(r["reference"], r["start"]) for r in cases} == {
@@ -152,8 +139,8 @@ def test_quick_robustness_bench_reports_drift(tmp_path: Path) -> None:
     default = data["summary"]["by_reference"][0]["methods"]["default"]
     assert default["drift_cases"] == 1 and default["drift_rotation_deg_median"] is not None
     assert default["drift_seeds"] == 2 and default["drift_spread_deg_median"] is not None
-    md = (tmp_path / "out" / "bench.md").read_text()
+    md = (out / "bench.md").read_text()
     assert "drift rot. median" in md and "#### Class `jpeg`" in md and "(2 seeds)" in md
-    saved = {p.name for p in (tmp_path / "out" / "cases" / "demo-faceted-00").iterdir()}
+    saved = {p.name for p in (out / "cases" / "demo-faceted-00").iterdir()}
     names = {f"request_{m}{tag}.json" for m in ("default", "pnp") for tag in ("", "_truth")}
     assert names | {"request_default_truth_seed1.json", "reference.png"} <= saved

@@ -68,8 +68,8 @@ def make_config(args: argparse.Namespace) -> dict[str, Any]:
     for key, lo, hi in (("cases", 1, 10_000), ("jobs", 1, 256), ("truth_seeds", 1, 100)):
         if not lo <= config[key] <= hi:
             raise BenchSetupError(f"{key} must be in {lo}..{hi}, got {config[key]}")
-    from_truth = "truth" in config["starts"] or set(models) & set(TERRAIN_MODEL_NAMES)
-    if config["truth_seeds"] > 1 and not from_truth:
+    truth_starts = "truth" in config["starts"] or set(models) & set(TERRAIN_MODEL_NAMES)
+    if config["truth_seeds"] > 1 and not truth_starts:
         raise BenchSetupError(
             "--truth-seeds needs estimates from the truth: --robustness (its starts include "
             "'truth' by default) or --terrain"

@@ -47,9 +47,9 @@ def rotation_vector_deg(R_est: NDArray[np.float64], R_true: NDArray[np.float64])
     """The rotation error R̂Rᵀ as a vector (axis × angle, degrees) in the camera frame: its
     length is ∠ΔR, and its direction tells a bias (the same for every estimator seed) from
     scatter (worker.bench.stats)."""
-    from scipy.spatial.transform import Rotation
+    from worker.engine.posemath import matrix_to_rotvec
 
-    return [float(v) for v in np.degrees(Rotation.from_matrix(R_est @ R_true.T).as_rotvec())]
+    return [float(v) for v in np.degrees(matrix_to_rotvec(R_est @ R_true.T))]
 
 
 def outcome(result: EstimateResult, R_true: NDArray[np.float64]) -> dict[str, Any]:
