@@ -54,20 +54,22 @@ def test_robustness_summary_groups_by_class_and_kind() -> None:
     records = [
         {**record(m, 0.1, 0.1), "reference": ref, "start": start}
         for m in ("default", "pnp")
-        for ref in ("faceted", "jpeg")  # a tuned class and a held-out one
+        for ref in ("faceted", "jpeg", "plain")  # a tuned class, a held-out one, the control
         for start in ("offset", "truth")
     ]
     summary = summarize(records, ["default", "pnp"])
     assert summary["by_band"] == []  # no standard references
-    assert [g["group"] for g in summary["by_reference"]] == ["faceted", "jpeg"]
-    assert {g["group"] for g in summary["by_reference_kind"]} == {"tuned", "held out"}
+    assert [g["group"] for g in summary["by_reference"]] == ["faceted", "jpeg", "plain"]
+    kinds = {g["group"] for g in summary["by_reference_kind"]}
+    assert kinds == {"tuned", "held out", "control"}
     config: dict[str, Any] = {"methods": ["default", "pnp"], "models": ["m"], "cases": 1}
     config |= {"sizes": [[64, 64]], "offsets": "uniform", "seed": 0}
     env: dict[str, Any] = {"command": "proxpose bench", "started_at": "now", "variant": "v"}
     env |= {"git_commit": "abc", "cpu_model": "cpu", "cpus_available": 2}
     md = markdown(summary, config, env)
     assert "#### Class `faceted`" in md and "#### All held out classes" in md
-    assert rows_of(md, "pnp") == 4  # two classes and two kinds
+    assert "#### Class `plain`" in md and "#### All control classes" in md
+    assert rows_of(md, "pnp") == 6  # three classes and three kinds
 
 
 def test_bench_rejects_an_unknown_reference_class(tmp_path: Path) -> None:
@@ -87,13 +89,16 @@ def test_bench_rejects_truth_seeds_without_a_start_at_the_truth(
 
 
 def test_every_reference_class_renders_something_else(variant: str) -> None:
-    """Each class's reference differs from the estimator's own render of the same case, and
-    the classes differ from one another (the same seed: the same pose and sun)."""
+    """The classes differ from one another (the same seed: the same pose and sun), and the
+    control class differs from the estimator's own render of the case only by its renderer."""
     from worker.bench.cases import bench_camera
-    from worker.bench.references import REFERENCE_CLASSES
+    from worker.bench.references import AMBIENT, IRRADIANCE, REFERENCE_CLASSES
     from worker.bench.synth import CaseSpec, make_case
     from worker.demo.satellite import demo_satellite_path
+    from worker.engine.camera import PinholeCamera
+    from worker.engine.images import srgb_encode
     from worker.engine.meshes import load_model
+    from worker.engine.renderer import LightingSpec, Renderer
 
     model = load_model(demo_satellite_path(REPO / "data"))
     images = {
@@ -105,11 +110,30 @@ def test_every_reference_class_renders_something_else(variant: str) -> None:
     pixels = {name: c.reference.astype(np.float64) for name, c in images.items()}
     for name, img in pixels.items():
         assert img.shape == (96, 96, 3) and img.max() > 50, name  # the target is visible
-    names = list(pixels)
+
+    def apart(a: np.ndarray, b: np.ndarray) -> float:
+        target = (a > 8) | (b > 8)  # over the target, not the black sky
+        return float(np.abs(a - b)[target].mean())
+
+    # The control (the bench's ray tracer with the estimator's physics) is left out of the
+    # pairs: on a model whose file normals are flat already (the demo satellite's boxes) it
+    # is the faceted class.
+    names = [name for name in pixels if not REFERENCE_CLASSES[name].control]
     for i, a in enumerate(names):
         for b in names[i + 1 :]:
-            target = (pixels[a] > 8) | (pixels[b] > 8)  # over the target, not the black sky
-            assert np.abs(pixels[a] - pixels[b])[target].mean() > 0.2, (a, b)
+            assert apart(pixels[a], pixels[b]) > 0.2, (a, b)
+    # The control is another renderer's image of the estimator's own physics: not Mitsuba's
+    # pixels, but nearer them than the classes made to differ most.
+    case = images["plain"]
+    own = Renderer(
+        model,
+        PinholeCamera.from_schema(bench_camera(96)),
+        LightingSpec(tuple(case.sun_true), IRRADIANCE, AMBIENT),  # type: ignore[arg-type]
+        spp=64,
+    ).render(case.R_true, case.t_true)
+    own8 = np.floor(srgb_encode(np.clip(own, 0.0, 1.0)) * 255.0 + 0.5)
+    control = apart(pixels["plain"], own8)
+    assert 0.2 < control < 0.8 * min(apart(pixels[n], own8) for n in ("defocus", "combined"))
 
 
 @pytest.mark.slow

@@ -8,7 +8,9 @@ and by how much, and above all how far the estimate drifts when it *starts at th
 
 Classes marked ``tuned`` were looked at while the estimator was developed; the others were held
 out of that loop, and the report lists them apart, so that a gain that holds only for the
-differences the estimator was tuned on shows.
+differences the estimator was tuned on shows. The ``plain`` class is a control: the bench's
+ray tracer with the estimator's own physics, so its drift is what another renderer alone (its
+sampling, its pixel grid, its geometry code) moves the estimate; the report lists it on its own.
 """
 
 from __future__ import annotations
@@ -52,9 +54,17 @@ class ReferenceClass:
     blur_px: float = 0.0  # defocus, Gaussian σ
     motion_px: float = 0.0  # motion blur, length of a straight streak
     jpeg_quality: int = 0  # 0: no JPEG
+    control: bool = False  # the same physics as the estimator's (only the renderer differs)
+
+    @property
+    def group(self) -> str:
+        """The report's class group: control, tuned or held out."""
+        return "control" if self.control else "tuned" if self.tuned else "held out"
 
 
 _CLASSES = [
+    ReferenceClass("plain", "the bench's ray tracer with the estimator's physics (a control)",
+                   False, control=True),
     ReferenceClass("faceted", "flat shading normals (each triangle's own)", True,
                    physics=Physics(normals="faceted")),
     ReferenceClass("glossy", "Blinn–Phong: 30 % specular, shininess 30", True,

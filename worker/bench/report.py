@@ -240,7 +240,8 @@ def terrain_tables(summary: dict[str, Any], config: dict[str, Any]) -> str:
 
 
 def robustness_tables(summary: dict[str, Any]) -> str:
-    """A table per class group (tuned, held out) and per reference class, rows = methods."""
+    """A table per class group (control, tuned, held out) and per reference class, rows =
+    methods."""
     from worker.bench.references import REFERENCE_CLASSES
 
     parts = [
@@ -252,7 +253,8 @@ def robustness_tables(summary: dict[str, Any]) -> str:
         "(what the seed decides), medians over the cases. error/σ: the "
         "rotation error over the reported 1-σ (RMS over the axes); ≤ 3σ: the share of errors "
         "within three of them. *Tuned* classes were looked at while developing the estimator; "
-        "*held out* ones were not.\n"
+        "*held out* ones were not; the *control* class (`plain`) differs from the estimator's "
+        "renders only by its renderer.\n"
     ]
     for group in summary["by_reference_kind"] + summary["by_reference"]:
         name = group["group"]

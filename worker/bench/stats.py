@@ -200,7 +200,7 @@ def group_summary(
 
 def summarize(records: list[Record], methods: list[str]) -> dict[str, Any]:
     """Summary per band, per model and band, and over everything (the standard references);
-    per reference class and per class group (tuned, held out) for the robustness suite; per
+    per reference class and per class group (control, tuned, held out) for the robustness suite; per
     terrain model for the terrain band."""
     from worker.bench.references import REFERENCE_CLASSES
 
@@ -209,7 +209,7 @@ def summarize(records: list[Record], methods: list[str]) -> dict[str, Any]:
     terrain = [r for r in records if r.get("reference") == "terrain"]
 
     def kind(r: Record) -> str:
-        return "tuned" if REFERENCE_CLASSES[r["reference"]].tuned else "held out"
+        return REFERENCE_CLASSES[r["reference"]].group
 
     return {
         "success_rotation_deg": SUCCESS_ROTATION_DEG,
