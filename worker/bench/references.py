@@ -93,6 +93,7 @@ _CLASSES = [
     ReferenceClass("motion", "motion blur, a 1.5 px streak", False, motion_px=1.5),
     ReferenceClass("tone", "exposure 0.7, gamma 2.2 instead of sRGB", False, exposure=0.7,
                    gamma=2.2),
+    ReferenceClass("bright", "exposure 3: the brighter parts clip", False, exposure=3.0),
     ReferenceClass("noise", "photon and read noise (σ = 1 % of full scale)", False,
                    noise_sigma=0.01),
     ReferenceClass("jpeg", "JPEG, quality 75", False, jpeg_quality=75),
