@@ -92,11 +92,10 @@ def test_every_reference_class_renders_something_else(variant: str) -> None:
     """The classes differ from one another (the same seed: the same pose and sun), and the
     control class differs from the estimator's own render of the case only by its renderer."""
     from worker.bench.cases import bench_camera
-    from worker.bench.references import AMBIENT, IRRADIANCE, REFERENCE_CLASSES
+    from worker.bench.references import AMBIENT, IRRADIANCE, REFERENCE_CLASSES, camera_response
     from worker.bench.synth import CaseSpec, make_case
     from worker.demo.satellite import demo_satellite_path
     from worker.engine.camera import PinholeCamera
-    from worker.engine.images import srgb_encode
     from worker.engine.meshes import load_model
     from worker.engine.renderer import LightingSpec, Renderer
 
@@ -118,20 +117,20 @@ def test_every_reference_class_renders_something_else(variant: str) -> None:
     # The control (the bench's ray tracer with the estimator's physics) is left out of the
     # pairs: on a model whose file normals are flat already (the demo satellite's boxes) it
     # is the faceted class.
-    names = [name for name in pixels if not REFERENCE_CLASSES[name].control]
+    names = [name for name in pixels if REFERENCE_CLASSES[name].group != "control"]
     for i, a in enumerate(names):
         for b in names[i + 1 :]:
             assert apart(pixels[a], pixels[b]) > 0.2, (a, b)
     # The control is another renderer's image of the estimator's own physics: not Mitsuba's
     # pixels, but nearer them than the classes made to differ most.
-    case = images["plain"]
+    case, case_class = images["plain"], REFERENCE_CLASSES["plain"]
     own = Renderer(
         model,
         PinholeCamera.from_schema(bench_camera(96)),
         LightingSpec(tuple(case.sun_true), IRRADIANCE, AMBIENT),  # type: ignore[arg-type]
         spp=64,
     ).render(case.R_true, case.t_true)
-    own8 = np.floor(srgb_encode(np.clip(own, 0.0, 1.0)) * 255.0 + 0.5)
+    own8 = camera_response(own, case_class, np.random.default_rng(0)).astype(np.float64)
     control = apart(pixels["plain"], own8)
     assert 0.2 < control < 0.8 * min(apart(pixels[n], own8) for n in ("defocus", "combined"))
 

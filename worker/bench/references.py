@@ -16,6 +16,7 @@ sampling, its pixel grid, its geometry code) moves the estimate; the report list
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from typing import Literal
 
 import cv2
 import numpy as np
@@ -29,6 +30,8 @@ from worker.engine.renderer import LightingSpec, Renderer
 from worker.engine.variant import one_render_thread
 
 Array = NDArray[np.float64]
+#: A class's group in the report: looked at while tuning, held out of that loop, or the control.
+Group = Literal["tuned", "held out", "control"]
 #: Sun irradiance and ambient radiance of the references (the request asks for the defaults).
 IRRADIANCE, AMBIENT = 3.0, 0.02
 #: Samples per pixel of the Mitsuba (path-traced) references.
@@ -43,7 +46,7 @@ class ReferenceClass:
 
     name: str
     description: str
-    tuned: bool
+    group: Group  # where the report lists it (see the module's docstring)
     renderer: str = "raytrace"  # raytrace (worker.bench.raytrace) | mitsuba (path tracing)
     physics: Physics = field(default_factory=Physics)
     faceted: bool = False  # mitsuba: flat shading normals
@@ -54,31 +57,25 @@ class ReferenceClass:
     blur_px: float = 0.0  # defocus, Gaussian σ
     motion_px: float = 0.0  # motion blur, length of a straight streak
     jpeg_quality: int = 0  # 0: no JPEG
-    control: bool = False  # the same physics as the estimator's (only the renderer differs)
-
-    @property
-    def group(self) -> str:
-        """The report's class group: control, tuned or held out."""
-        return "control" if self.control else "tuned" if self.tuned else "held out"
 
 
 _CLASSES = [
     ReferenceClass("plain", "the bench's ray tracer with the estimator's physics (a control)",
-                   False, control=True),
-    ReferenceClass("faceted", "flat shading normals (each triangle's own)", True,
+                   "control"),
+    ReferenceClass("faceted", "flat shading normals (each triangle's own)", "tuned",
                    physics=Physics(normals="faceted")),
-    ReferenceClass("glossy", "Blinn–Phong: 30 % specular, shininess 30", True,
+    ReferenceClass("glossy", "Blinn–Phong: 30 % specular, shininess 30", "tuned",
                    physics=Physics(brdf="phong")),
-    ReferenceClass("regolith", "Lommel–Seeliger/Lambert mix (a small body's law)", True,
+    ReferenceClass("regolith", "Lommel–Seeliger/Lambert mix (a small body's law)", "tuned",
                    physics=Physics(brdf="lommel")),
-    ReferenceClass("path", "Mitsuba path tracing: inter-reflections, Gaussian filter", True,
+    ReferenceClass("path", "Mitsuba path tracing: inter-reflections, Gaussian filter", "tuned",
                    renderer="mitsuba"),
-    ReferenceClass("defocus", "optical blur, Gaussian σ = 1 px", True, blur_px=1.0),
-    ReferenceClass("sun", "the request's sun 4° off", True, sun_error_deg=4.0),
+    ReferenceClass("defocus", "optical blur, Gaussian σ = 1 px", "tuned", blur_px=1.0),
+    ReferenceClass("sun", "the request's sun 4° off", "tuned", sun_error_deg=4.0),
     ReferenceClass(
         "combined",
         "path tracing, flat normals, Gaussian filter, sun 3° off, exposure 0.7, gamma 2.2, noise",
-        True,
+        "tuned",
         renderer="mitsuba",
         faceted=True,
         sun_error_deg=3.0,
@@ -86,17 +83,17 @@ _CLASSES = [
         gamma=2.2,
         noise_sigma=0.01,
     ),
-    ReferenceClass("rough", "Oren–Nayar rough diffuse, σ = 25°", False,
+    ReferenceClass("rough", "Oren–Nayar rough diffuse, σ = 25°", "held out",
                    physics=Physics(brdf="oren")),
-    ReferenceClass("filter", "Gaussian pixel filter (σ = 0.5 px)", False,
+    ReferenceClass("filter", "Gaussian pixel filter (σ = 0.5 px)", "held out",
                    physics=Physics(pixel_filter="gaussian")),
-    ReferenceClass("motion", "motion blur, a 1.5 px streak", False, motion_px=1.5),
-    ReferenceClass("tone", "exposure 0.7, gamma 2.2 instead of sRGB", False, exposure=0.7,
+    ReferenceClass("motion", "motion blur, a 1.5 px streak", "held out", motion_px=1.5),
+    ReferenceClass("tone", "exposure 0.7, gamma 2.2 instead of sRGB", "held out", exposure=0.7,
                    gamma=2.2),
-    ReferenceClass("bright", "exposure 3: the brighter parts clip", False, exposure=3.0),
-    ReferenceClass("noise", "photon and read noise (σ = 1 % of full scale)", False,
+    ReferenceClass("bright", "exposure 3: the brighter parts clip", "held out", exposure=3.0),
+    ReferenceClass("noise", "photon and read noise (σ = 1 % of full scale)", "held out",
                    noise_sigma=0.01),
-    ReferenceClass("jpeg", "JPEG, quality 75", False, jpeg_quality=75),
+    ReferenceClass("jpeg", "JPEG, quality 75", "held out", jpeg_quality=75),
 ]  # fmt: skip
 REFERENCE_CLASSES: dict[str, ReferenceClass] = {c.name: c for c in _CLASSES}
 
