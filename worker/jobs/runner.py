@@ -66,6 +66,7 @@ def run(args: argparse.Namespace) -> int:
     from service.store.budget import warn_if_unbounded
     from worker.entry import init_renderer_backend
     from worker.jobs.context import job_blobs
+    from worker.jobs.priority import lower_priority
 
     settings = get_settings()
     configure_logging(settings.log_format, replace=True)  # not the CLI's text handler
@@ -75,8 +76,7 @@ def run(args: argparse.Namespace) -> int:
         return 1
     keys = Keys(settings.redis_prefix)
     warn_if_unbounded(r, "worker")
-    if settings.worker_nice > 0:
-        os.nice(settings.worker_nice)  # before the renderer's threads start: they inherit it
+    lower_priority(settings.worker_nice)  # before the renderer's threads start: they inherit it
     variant = init_renderer_backend()
     demo = DemoRegistration(r, keys, settings)
     log.info("renderer variant %s", variant)
