@@ -145,8 +145,8 @@ def assert_worker_yields_to_api(proc: subprocess.Popen[bytes]) -> None:
     has a session of its own, and Linux shares the CPU between sessions before niceness counts
     (worker.jobs.priority). The API's autogroup keeps the default niceness."""
     worker, api = child_pid(proc, b"worker.cli"), child_pid(proc, b"uvicorn")
-    assert os.getpriority(os.PRIO_PROCESS, worker) == 10
-    assert os.getpriority(os.PRIO_PROCESS, api) == 0
+    api_nice = os.getpriority(os.PRIO_PROCESS, api)  # the test runner's (0 unless run niced)
+    assert os.getpriority(os.PRIO_PROCESS, worker) == min(19, api_nice + 10)
     autogroup = Path(f"/proc/{worker}/autogroup")
     if autogroup.exists():  # Linux with CONFIG_SCHED_AUTOGROUP
         assert autogroup.read_text().split()[-2:] == ["nice", "10"], autogroup.read_text()
