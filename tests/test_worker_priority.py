@@ -17,7 +17,7 @@ AUTOGROUP = Path("/proc/self/autogroup")
 PROBE = (
     "import os; from pathlib import Path; from worker.jobs.priority import lower_priority; "
     "print(lower_priority(7)); print(os.getpriority(os.PRIO_PROCESS, 0)); "
-    "print(Path('/proc/self/autogroup').read_text().split()[-1])"
+    "print((Path('/proc/self/autogroup').read_text().split() or ['root'])[-1])"
 )
 
 
@@ -35,7 +35,10 @@ def probe(new_session: bool) -> list[str]:
 
 
 def autogroup_nice() -> str:
-    return AUTOGROUP.read_text().split()[-1]
+    """The calling process's autogroup niceness; "root" for the kernel's default autogroup (a
+    process whose session never called setsid, as in a container started without one), for
+    which Linux prints nothing."""
+    return (AUTOGROUP.read_text().split() or ["root"])[-1]
 
 
 needs_autogroup = pytest.mark.skipif(
