@@ -42,6 +42,11 @@ def test_bench_sequences_pairs_the_tracker_with_chained_estimates(tmp_path: Path
     # re-initialisations, full estimates on the whole image, which cost more than the chained
     # estimates on their refinement's window)
     assert track["render_cost_per_tracked_frame"] < chained["render_cost_per_frame"]
+    # every frame traced: status, errors and reported σ, in order
+    detail = track["per_frame"]
+    assert [f["status"] for f in detail][0] == "reinitialised" and len(detail) == 4
+    assert max(f["rot_deg"] for f in detail) == pytest.approx(track["rot_max_deg"], abs=1e-4)
+    assert all(f["sigma_rot_deg"] > 0 for f in detail if f["status"] != "lost")
     assert "| demo | approach | tone | track |" in (tmp_path / "sequences.md").read_text()
 
 

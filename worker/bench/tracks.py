@@ -87,7 +87,24 @@ class SequenceRun:
                 and f.errors.translation_pct_of_range < ACCURATE_PCT
             ),
             "jump": jump,
+            "per_frame": [_frame_detail(f) for f in self.frames],
         }
+
+
+def _frame_detail(f: TrackFrame) -> dict[str, Any]:
+    """What traces a sequence's maximum to its frame: status, stop rule, renders, whether
+    the Jacobian was learned again, the errors and the reported 1-σ rotation."""
+    e, c = f.errors, f.covariance
+    return {
+        "status": f.status,
+        "reason": f.reason,
+        "renders": f.renders,
+        "relearned": f.relearned,
+        "seconds": round(f.seconds, 3),
+        "rot_deg": round(e.rotation_deg, 4) if e else None,
+        "trans_pct": round(e.translation_pct_of_range, 4) if e else None,
+        "sigma_rot_deg": round(float(np.linalg.norm(c.sigma_rotation_deg)), 4) if c else None,
+    }
 
 
 def run_tracker(model: Any, seq: Sequence) -> list[TrackFrame]:
