@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 from typing import Any
 
 import numpy as np
@@ -26,6 +27,12 @@ def failure(code: str, exc: Exception) -> dict[str, Any]:
     }
 
 
+def sigma_length(sigmas: Sequence[float]) -> float:
+    """Per-axis 1-σ figures as one: the root of their sum of squares (the expected length of
+    the error)."""
+    return math.sqrt(sum(s * s for s in sigmas))
+
+
 def _calibration(result: EstimateResult) -> dict[str, Any]:
     """The reported 1-σ (RMS over the axes: the expected size of the error) and how many σ the
     actual errors are."""
@@ -33,8 +40,8 @@ def _calibration(result: EstimateResult) -> dict[str, Any]:
     if cov is None or err is None:
         return {"sigma_rotation_deg": None, "sigma_translation": None,
                 "rotation_sigmas": None, "translation_sigmas": None}  # fmt: skip
-    s_rot = math.sqrt(sum(s * s for s in cov.sigma_rotation_deg))
-    s_t = math.sqrt(sum(s * s for s in cov.sigma_translation))
+    s_rot = sigma_length(cov.sigma_rotation_deg)
+    s_t = sigma_length(cov.sigma_translation)
     return {
         "sigma_rotation_deg": s_rot,
         "sigma_translation": s_t,

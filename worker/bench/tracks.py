@@ -22,6 +22,7 @@ import numpy as np
 
 from schemas.pose import Pose
 from schemas.track import TrackFrame, summarise
+from worker.bench.records import sigma_length
 from worker.bench.sequences import MOTIONS, Sequence, make_sequence
 from worker.engine.exceptions import ProxposeError
 
@@ -103,7 +104,7 @@ def _frame_detail(f: TrackFrame) -> dict[str, Any]:
         "seconds": round(f.seconds, 3),
         "rot_deg": round(e.rotation_deg, 4) if e else None,
         "trans_pct": round(e.translation_pct_of_range, 4) if e else None,
-        "sigma_rot_deg": round(float(np.linalg.norm(c.sigma_rotation_deg)), 4) if c else None,
+        "sigma_rot_deg": round(sigma_length(c.sigma_rotation_deg), 4) if c else None,
     }
 
 
