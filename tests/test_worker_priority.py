@@ -11,13 +11,12 @@ from pathlib import Path
 import pytest
 from conftest import REPO
 
-from worker.jobs.priority import lower_priority
+from worker.jobs.priority import AUTOGROUP, lower_priority
 
-AUTOGROUP = Path("/proc/self/autogroup")
 PROBE = (
-    "import os; from pathlib import Path; from worker.jobs.priority import lower_priority; "
+    "import os; from worker.jobs.priority import AUTOGROUP, lower_priority; "
     "print(lower_priority(7)); print(os.getpriority(os.PRIO_PROCESS, 0)); "
-    "print((Path('/proc/self/autogroup').read_text().split() or ['root'])[-1])"
+    "print((AUTOGROUP.read_text().split() or ['root'])[-1])"
 )
 
 
