@@ -3,6 +3,8 @@ previous frame's and what it sets for itself."""
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 from test_refine import R0, T0, make_session
 
@@ -15,10 +17,15 @@ from worker.engine.metrics import rotation_error_deg
 from worker.engine.posemath import axis_angle_to_matrix
 
 
-def _tracked_session(perturbation_spp: int) -> tuple[Session, list[int]]:
-    """A tracked frame's session after a previous frame's with ``perturbation_spp``, and the
-    samples per pixel of each render it makes."""
+def _tracked_session(
+    perturbation_spp: int, sun: tuple[float, float, float] | None = None
+) -> tuple[Session, list[int]]:
+    """A tracked frame's session after a previous frame's with ``perturbation_spp`` (that left
+    the renderer's sun tilted to ``sun``), and the samples per pixel of each render it makes."""
     previous = make_session(perturbation_spp=perturbation_spp)
+    requested = previous.requested_lighting
+    if sun is not None:
+        previous.renderer.set_lighting(replace(requested, sun_direction=sun))
     spps: list[int] = []
     render = previous.renderer.render
 
@@ -30,6 +37,7 @@ def _tracked_session(perturbation_spp: int) -> tuple[Session, list[int]]:
     tracker = Tracker.__new__(Tracker)
     tracker.should_cancel = None
     tracker._points = np.zeros((1, 3), np.float32)  # the stub renderer has no window sensors
+    tracker._requested = requested
     image = np.zeros((64, 64, 3), np.float32)
     return tracker._session(previous, image, (R0, T0), None), spps
 
@@ -40,6 +48,15 @@ def test_a_tracked_frame_learns_from_perturbations_with_the_tracker_spp() -> Non
     assert session.options.max_iterations == FRAME_ITERATIONS
     session.render_perturbed(R0, T0, seed=1)
     assert spps == [TRACK_PERTURBATION_SPP]
+
+
+def test_a_tracked_frame_s_sun_prior_is_the_request_s_not_the_last_fit() -> None:
+    """The renderer keeps the sun the last fit tilted; a frame that solves for the sun again
+    pulls it towards the request's, not towards that fit."""
+    tilted = (0.1, -0.6, -0.79)
+    session, _ = _tracked_session(perturbation_spp=4, sun=tilted)
+    assert session.renderer.lighting.sun_direction == tilted
+    assert session.requested_lighting.sun_direction == (0.0, -0.6, -0.8)
 
 
 def test_more_samples_asked_for_are_kept() -> None:

@@ -67,12 +67,3 @@ def sky_window(
     lit = reference > LIT_FRACTION * float(reference.max())
     inside = int(lit[y : y + h, x : x + w].sum())
     return (window.side, centre) if int(lit.sum()) - inside <= SKY_SPILL * inside else None
-
-
-def follow_target(session: Session, points: NDArray[np.float32]) -> None:
-    """Move ``session``'s sky window to its current pose (the LM may have gone far from the
-    prediction); its current view is rendered again if the window moved."""
-    keep = session.sky_window[0] if session.sky_window else None
-    sky = sky_window(points, session, (session.R, session.t), keep)
-    if sky != session.sky_window:
-        session.sky_window, session.current = sky, None

@@ -9,7 +9,10 @@ when the LM's step from there moves some feature by LINEAR_STEP_PX or more (a sm
 taken on the linear model: its trial would only re-measure the features), not a full estimate.
 The learned-Jacobian LM stays the core: the rows are the paper's, learned from perturbed
 renders, and learned again (with the features made afresh) once the attitude has turned
-RELEARN_ROTATION_DEG from where they were learned or too few features are left.
+RELEARN_ROTATION_DEG from where they were learned or too few features are left. A frame that
+learns them again also solves for the sun's tilt again (with options.fit_sun), from the
+features made there: the tilt the first frame fitted is only as good as what that view's
+shading showed, and as the target turns other shading features come in that it misplaces.
 
 A frame's renders render only a window around the target, pasted onto the sky
 (worker.align.skywindow).
@@ -30,16 +33,11 @@ import numpy as np
 from numpy.typing import NDArray
 
 from schemas.estimate import Covariance, Errors, EstimateRequest
-from worker.align.estimator import (
-    MIN_CONVERGED_SCORE,
-    covariance_of,
-    errors_between,
-    estimate,
-)
+from worker.align.estimator import MIN_CONVERGED_SCORE, covariance_of, errors_between, estimate
 from worker.align.learning import LearnedJacobian, learn_at_pose
 from worker.align.refine import StageState, run_lm_stage
 from worker.align.session import CancelCheck, Session
-from worker.align.skywindow import follow_target, sky_window
+from worker.align.skywindow import sky_window
 from worker.align.tracked import TrackedFeatures, work_box
 from worker.engine.exceptions import ProxposeError, TooFewFeaturesError
 from worker.engine.images import FloatImage, check_size, to_grey
@@ -52,6 +50,7 @@ from worker.engine.posemath import (
     pose_from_schema,
     pose_to_schema,
 )
+from worker.engine.renderer import LightingSpec
 
 Array = NDArray[np.float64]
 
@@ -150,6 +149,9 @@ class Tracker:
         self._velocity: Array | None = None
         self._misalignment: list[float] = []
         self._memory: _Memory | None = None
+        #: The request's sun (a full estimate's ``requested_lighting``): the prior of a tracked
+        #: frame's sun fit, not the tilted sun the renderer was left with.
+        self._requested: LightingSpec | None = None
         #: The model's vertices (model frame), whose image bounds each frame's sky window.
         self._points = np.concatenate([p.vertices for p in model.parts]).astype(np.float32)
 
@@ -211,6 +213,7 @@ class Tracker:
         )
         session = est.session
         assert session is not None
+        self._requested = session.requested_lighting
         result = est.result
         if session.last_stage is None or not isinstance(
             session.last_stage.features, TrackedFeatures
@@ -239,23 +242,21 @@ class Tracker:
     def _tracked(
         self, image: FloatImage, truth: Pose | None, index: int, start: float
     ) -> FrameResult:
-        """A frame from the previous one's state; when that pass does not converge, a second
-        from features made afresh and a Jacobian learned at the pose it reached; when that
-        fails too, or the referee rejects the frame, a full estimate (:meth:`_recover`)."""
+        """A frame from the previous one's state; when its LM does not converge, or the referee
+        rejects the frame, a full estimate (:meth:`_recover`).
+
+        A second pass from features made afresh where the first stopped (as this did until
+        2026-12-05) could converge far from the truth: its features are made to fit the pose
+        they are made at. On an ISS approach (`combined`, 2 % closer a frame) the first pass
+        stopped 0.70° off after its iterations, the second "converged" 0.64° off, and the
+        velocity carried that on to 2.4° and 7 % of the range in three frames, every one of
+        them converged (bench/README.md, "A frame whose pass does not converge")."""
         memory = self._memory
         assert memory is not None
         R_p, t_p = self.predicted()
         session = self._session(memory.session, image, (R_p, t_p), truth)
-        relearned = False
         try:
             reason = self._lm(session, self._carry(memory, session))
-            if reason not in CONVERGED:
-                relearned = True
-                session.options = session.options.model_copy(
-                    update={"max_iterations": len(session.history) + FRAME_ITERATIONS}
-                )
-                follow_target(session, self._points)  # it may be far from the prediction
-                reason = self._lm(session, self._fresh(session))
             # The last render referees the frame: after a linear step it is the step's start,
             # a fraction of a pixel away.
             current = session.current
@@ -274,11 +275,7 @@ class Tracker:
             aligned = score >= MIN_TRACK_SCORE and not self._misaligned(score)
             guess = (session.R, session.t) if aligned else (R_p, t_p)
             return self._recover(image, guess, truth, index, start)
-        if relearned:
-            st = session.last_stage
-            self._memory = _Memory(st, (session.R, session.t), int(st.ok.sum()), session)
-        else:
-            relearned = self._keep(session, memory)
+        relearned = self._keep(session, memory)
         return FrameResult(
             index,
             session.R,
@@ -321,6 +318,8 @@ class Tracker:
             rng=previous.rng,
             perturbation_scales=previous.perturbation_scales,
         )
+        assert self._requested is not None
+        session.requested_lighting = self._requested
         keep = previous.sky_window[0] if previous.sky_window else None
         session.sky_window = sky_window(self._points, session, guess, keep)
         return session
@@ -342,7 +341,9 @@ class Tracker:
 
     def _keep(self, session: Session, memory: _Memory) -> bool:
         """Remember this frame's state for the next; learn the Jacobian afresh (with new
-        features) when the attitude has turned far since, or too few features are left."""
+        features) when the attitude has turned far since, or too few features are left, and
+        then solve for the sun's tilt again too, the pose with it (measured: bench/README.md,
+        "The sun solved again at each relearning")."""
         st = session.last_stage
         turned = rotation_error_deg(memory.learned_pose[0], session.R)
         left = int(st.ok.sum())
@@ -350,6 +351,15 @@ class Tracker:
             self._memory = _Memory(st, memory.learned_pose, memory.learned_features, session)
             return False
         fresh = self._fresh(session)
+        if session.options.fit_sun:
+            session.options = session.options.model_copy(
+                update={"max_iterations": len(session.history) + FRAME_ITERATIONS}
+            )
+            try:
+                run_lm_stage(session, "klt", "refine", fit_sun=True, state=fresh)
+            except TooFewFeaturesError:
+                pass  # the sun and the pose stay where the frame put them
+            fresh.sun_J = None  # the next frames keep this sun and solve for the pose only
         self._memory = _Memory(fresh, (session.R, session.t), int(fresh.ok.sum()), session)
         return True
 
