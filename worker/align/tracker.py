@@ -250,7 +250,7 @@ class Tracker:
         they are made at. On an ISS approach (`combined`, 2 % closer a frame) the first pass
         stopped 0.70° off after its iterations, the second "converged" 0.64° off, and the
         velocity carried that on to 2.4° and 7 % of the range in three frames, every one of
-        them converged (bench/README.md, "A frame whose pass does not converge")."""
+        them converged (bench/README.md, "The sun solved again at each relearning")."""
         memory = self._memory
         assert memory is not None
         R_p, t_p = self.predicted()
