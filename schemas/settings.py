@@ -231,6 +231,12 @@ class Settings(BaseSettings):
         description="Sustained submissions (POST of estimates, renders, models) per minute per "
         "key; 0 = unlimited. Above it: 429 with Retry-After.",
     )
+    inline_submissions: bool = Field(
+        default=True,
+        description="Store a small estimate submission (image up to 1 MiB, file blob store) "
+        "on the API's event loop while Redis answers within 1 s, instead of in its thread "
+        "pool: a burst of submissions then finishes in turn instead of all at its end.",
+    )
     submission_burst: int = Field(
         default=30, ge=1, description="Submissions a key may make at once before the rate applies."
     )

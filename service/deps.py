@@ -13,7 +13,7 @@ that needs most of them takes ``CallerDep``, one node, instead of a dozen.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Annotated
 
 import redis
@@ -133,6 +133,14 @@ async def get_caller(request: Request) -> Caller:
 
 
 CallerDep = Annotated[Caller, Depends(get_caller)]
+
+
+def caller_on(request: Request, caller: Caller, r: redis.Redis) -> Caller:
+    """``caller`` with its job and model stores on the Redis client ``r``."""
+    keys = caller.jobs.keys
+    jobs = _job_store(request, r, keys, caller.settings, caller.principal)
+    models = ModelStore(r, keys, viewer=caller.principal, blobs=request.app.state.blobs)
+    return replace(caller, jobs=jobs, models=models)
 
 
 FORM_TYPES = ("multipart/form-data", "application/x-www-form-urlencoded")

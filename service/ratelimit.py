@@ -9,6 +9,7 @@ the limit. (The cap on queued jobs per key is checked when a job is created, see
 
 from __future__ import annotations
 
+import asyncio
 import logging
 import math
 from collections.abc import Callable
@@ -18,10 +19,14 @@ import redis.asyncio
 from starlette.types import ASGIApp, Receive, Scope, Send
 
 from schemas.settings import Settings
+from service.inline import InlineSubmissions
 from service.problems import send_problem
 from service.store import Keys, Principal
 
 log = logging.getLogger(__name__)
+
+#: The longest a submission waits for the rate limit's answer from Redis, s (then 503).
+ADMIT_TIMEOUT_S = 2.0
 
 #: Routes that count as submissions.
 SUBMISSIONS = frozenset(
@@ -51,18 +56,49 @@ return {1, 0}
 """
 
 
-async def admit(
-    r: redis.asyncio.Redis, keys: Keys, settings: Settings, principal: Principal
-) -> float | None:
-    """None if ``principal`` may submit now (and count it), else the seconds to wait."""
+def _gcra_args(keys: Keys, settings: Settings, principal: Principal) -> list[str | int] | None:
+    """The GCRA script's key and arguments for ``principal``; None when there is no limit."""
     if settings.submissions_per_minute <= 0:
         return None
     interval_ms = 60_000.0 / settings.submissions_per_minute
     tolerance_ms = interval_ms * (settings.submission_burst - 1)
-    allowed, wait_ms = await r.eval(  # type: ignore[misc]
-        _GCRA, 1, keys.rate(principal.name), int(interval_ms), int(tolerance_ms)
-    )
+    return [keys.rate(principal.name), int(interval_ms), int(tolerance_ms)]
+
+
+def _wait_s(reply: list[int]) -> float | None:
+    allowed, wait_ms = reply
     return None if allowed else max(0.001, int(wait_ms) / 1000.0)
+
+
+async def admit(
+    r: redis.asyncio.Redis, keys: Keys, settings: Settings, principal: Principal
+) -> float | None:
+    """None if ``principal`` may submit now (and count it), else the seconds to wait."""
+    args = _gcra_args(keys, settings, principal)
+    if args is None:
+        return None
+    return _wait_s(await r.eval(_GCRA, 1, *args))  # type: ignore[misc]
+
+
+def admit_now(r: redis.Redis, keys: Keys, settings: Settings, principal: Principal) -> float | None:
+    """:func:`admit` through a sync client (the inline one, on the event loop)."""
+    args = _gcra_args(keys, settings, principal)
+    if args is None:
+        return None
+    return _wait_s(r.eval(_GCRA, 1, *args))  # type: ignore[arg-type]
+
+
+async def admit_in_time(
+    scope: Scope, keys: Keys, settings: Settings, principal: Principal
+) -> float | None:
+    """:func:`admit` through the inline client while that is usable (service/inline.py: a
+    few tens of µs on the loop, where the async client costs more), else through the async
+    client within ADMIT_TIMEOUT_S (TimeoutError after it: a hung Redis is not waited on)."""
+    state = scope["app"].state
+    inline: InlineSubmissions | None = getattr(state, "inline", None)
+    if inline is not None and inline.ready():
+        return inline.guard(lambda r: admit_now(r, keys, settings, principal))
+    return await asyncio.wait_for(admit(state.aredis, keys, settings, principal), ADMIT_TIMEOUT_S)
 
 
 class SubmissionRateLimitMiddleware:
@@ -83,11 +119,9 @@ class SubmissionRateLimitMiddleware:
             return
         settings = self.settings()
         try:
-            wait_s = await admit(
-                scope["app"].state.aredis, Keys(settings.redis_prefix), settings, principal
-            )
-        except redis.RedisError as exc:
-            log.error("rate limiter: Redis error: %s", exc)
+            wait_s = await admit_in_time(scope, Keys(settings.redis_prefix), settings, principal)
+        except (redis.RedisError, TimeoutError) as exc:
+            log.error("rate limiter: Redis error: %s", exc or type(exc).__name__)
             detail = "the job store (Redis) is unreachable; try again shortly"
             await send_problem(
                 send,

@@ -12,8 +12,17 @@ from fastapi.responses import StreamingResponse
 from schemas.jobs import EstimateCreate, EstimateList, EstimatePublic, JobStatus
 from schemas.models import MODEL_ID_PATTERN
 from schemas.settings import Settings
-from service.deps import AsyncRedisDep, CallerDep, JobStoreDep, Multipart, SettingsDep
+from service.deps import (
+    AsyncRedisDep,
+    Caller,
+    CallerDep,
+    JobStoreDep,
+    Multipart,
+    SettingsDep,
+    caller_on,
+)
 from service.events import event_stream
+from service.inline import INLINE_MAX_IMAGE_BYTES, InlineSubmissions
 from service.resources import estimate_location, estimate_public, estimate_summary
 from service.store import JobRecord, JobStore, Reaper
 from service.submissions import (
@@ -63,7 +72,7 @@ def _get_or_404(jobs: JobStore, job_id: str, settings: Settings) -> JobRecord:
         },
     },
 )
-def create_estimate(
+async def create_estimate(
     image: Annotated[UploadFile, File(description="Reference image: PNG, JPEG or TIFF.")],
     request: Annotated[
         str | UploadFile,
@@ -74,7 +83,21 @@ def create_estimate(
         ),
     ],
     caller: CallerDep,
+    http: Request,
     idempotency_key: IdempotencyKey = None,
+) -> Response:
+    # on the event loop when the submission is small and Redis quick (service/inline.py)
+    inline: InlineSubmissions = http.app.state.inline
+    size = image.size if image.size is not None else INLINE_MAX_IMAGE_BYTES + 1
+    return await inline.run(
+        size,
+        lambda r: _create_estimate(image, request, caller_on(http, caller, r), idempotency_key),
+        lambda: _create_estimate(image, request, caller, idempotency_key),
+    )
+
+
+def _create_estimate(
+    image: UploadFile, request: str | UploadFile, caller: Caller, idempotency_key: str | None
 ) -> Response:
     settings, jobs = caller.settings, caller.jobs
     check_idempotency_key(idempotency_key)
