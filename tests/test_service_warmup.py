@@ -66,3 +66,29 @@ def test_image_readers_load_without_scanning_every_pil_plugin() -> None:
         [sys.executable, "-c", probe], cwd=REPO, capture_output=True, text=True, timeout=60
     )
     assert out.stdout.strip() == "ok", out.stderr
+
+
+def test_fastapi_builds_the_routes_as_the_api_starts(
+    redis_server: Any, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """FastAPI builds a route's dependencies and validators when a request first looks at it
+    (~23 ms for all of ours); the API does it as it starts (service.main.warm_routes), so the
+    first submission does not build anything."""
+    import fastapi.routing
+
+    built: list[str] = []
+    real = fastapi.routing.get_dependant
+
+    def counting(*args: Any, **kwargs: Any) -> Any:
+        built.append(str(kwargs.get("path")))
+        return real(*args, **kwargs)
+
+    monkeypatch.setattr(fastapi.routing, "get_dependant", counting)
+    with settings_on_redis(redis_server, DB, tmp_path, monkeypatch):
+        with TestClient(create_app()) as client:
+            at_start = len(built)
+            assert "/v1/estimates" in built and "/v1/tracks/{job_id}" in built, built
+            assert client.get("/v1/estimates/0").status_code == 404
+            files = {"image": ("a.png", b"not a png", "image/png")}
+            assert client.post("/v1/estimates", files=files).status_code == 422
+            assert len(built) == at_start, built[at_start:]
