@@ -1,6 +1,6 @@
 """What the API readies as it starts, so that the first burst of submissions does not pay for
-it: its Redis connections (real Redis, CLIENT LIST) and PIL's image readers; and that it still
-starts, answering 503, when Redis is away."""
+it: its Redis connections (real Redis, CLIENT LIST), PIL's image readers and FastAPI's routes;
+and that it still starts, answering 503, when Redis is away."""
 
 from __future__ import annotations
 
