@@ -17,7 +17,9 @@ The loop must not wait on anything slow, so a submission is stored inline only w
 - the last inline submissions did: one that fails on Redis (down, hung) or takes longer than
   ``SLOW_S`` (a remote Redis, a slow disk) sends the next ``PAUSE_S`` seconds of submissions to
   the thread pool, which rides out short outages with its backoff and waits on a hung Redis
-  in a thread, not on the loop. The pause is logged once.
+  in a thread, not on the loop. The pause is logged once. (The submission that meets a hung
+  Redis holds the loop for one timeout, or up to three when it has reserved its place and
+  claimed an Idempotency-Key: giving them back times out too.)
 
 The rate limiter's Redis call (service/ratelimit.py) goes through the same client and pause.
 
