@@ -77,10 +77,12 @@ class InlineSubmissions:
         r: redis.Redis | None,
         blobs: CountingBlobStore,
         clock: Callable[[], float] = time.monotonic,
+        on_pause: Callable[[], None] = lambda: None,
     ) -> None:
         self.r = r  # None: never inline (turned off in the settings)
         self.local_blobs = isinstance(blobs.inner, FileBlobStore)
         self.clock = clock
+        self.on_pause = on_pause  # counts the pauses (/metrics)
         self.paused_until = 0.0
 
     def ready(self) -> bool:
@@ -94,6 +96,7 @@ class InlineSubmissions:
     def pause(self, why: str) -> None:
         if self.clock() >= self.paused_until:
             log.warning("submissions go through the thread pool for %.0f s: %s", PAUSE_S, why)
+            self.on_pause()
         self.paused_until = self.clock() + PAUSE_S
 
     def guard(self, work: Callable[[redis.Redis], T]) -> T:

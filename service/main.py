@@ -129,7 +129,8 @@ async def lifespan(app: FastAPI) -> AsyncIterator[None]:
             driver_info=reconnect["driver_info"],
             client_name=API_CLIENT_NAME,
         )
-    app.state.inline = InlineSubmissions(fast, app.state.blobs)
+    paused = app.state.metrics.inline_paused.inc
+    app.state.inline = InlineSubmissions(fast, app.state.blobs, on_pause=paused)
     keys = Keys(settings.redis_prefix)
     app.state.store_source = (app.state.redis, keys)
     app.state.queues = Queues(app.state.redis, keys)  # shared by the requests' job stores

@@ -153,6 +153,8 @@ def test_a_hung_redis_holds_the_loop_once_then_submissions_go_to_the_pool(
                 os.kill(proc.pid, signal.SIGCONT)
                 # still paused: the next submission goes through the pool, and succeeds
                 assert submit(client).status_code == 202
+                metrics = client.get("/metrics").text
+                assert "proxpose_inline_submissions_paused_total 1.0" in metrics
                 subs = client.app.state.inline  # type: ignore[attr-defined]
                 subs.clock = lambda: time.monotonic() + inline.PAUSE_S  # the pause is over
                 assert submit(client).status_code == 202  # on the loop again
