@@ -1,8 +1,9 @@
 """Estimate submissions stored on the event loop (service/inline.py): which submissions go there,
 and what happens when Redis hangs (a real redis-server stopped with SIGSTOP): the submission on
 the loop answers 503 within the inline client's timeout, the loop answers other requests
-again at once, and the next submissions go through the thread pool until the pause ends.
-A narrow unit test with a fake clock pins the pause rules beside the real ones."""
+again at once, and the next submissions go through the thread pool until the pause ends; the
+readiness probe answers 503 in bounded time too. A narrow unit test with a fake clock pins the
+pause rules beside the real ones."""
 
 from __future__ import annotations
 
@@ -31,6 +32,7 @@ from service import inline, ratelimit
 from service.embedded_redis import find_redis_server
 from service.inline import INLINE_MAX_IMAGE_BYTES, InlineSubmissions
 from service.main import create_app
+from service.routes import health
 from service.store.blobs import CountingBlobStore, FileBlobStore
 
 DB = 13
@@ -165,6 +167,36 @@ def test_a_hung_redis_holds_the_loop_once_then_submissions_go_to_the_pool(
     assert threads[1] == POOL_THREAD and threads[2] != POOL_THREAD, threads
     paused = [m for m in caplog.messages if "submissions go through the thread pool" in m]
     assert len(paused) == 1 and "TimeoutError" in paused[0], paused
+
+
+def test_readiness_answers_503_soon_when_redis_hangs(
+    private_redis: tuple[subprocess.Popen[bytes], str],
+    tmp_path: Path,
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """A readiness probe against a hung Redis: 503 within READY_WAIT_S, not after the sync
+    client's timeouts and retries (minutes); ready again once Redis answers."""
+    proc, url = private_redis
+    monkeypatch.setenv("PROXPOSE_REDIS_URL", url)
+    monkeypatch.setenv("PROXPOSE_DATA_DIR", str(tmp_path))
+    get_settings.cache_clear()
+    try:
+        with TestClient(create_app()) as client:
+            assert client.get("/readyz").status_code == 200
+            os.kill(proc.pid, signal.SIGSTOP)
+            start = time.monotonic()
+            hung = client.get("/readyz")
+            took = time.monotonic() - start
+            assert hung.status_code == 503 and hung.headers["retry-after"], hung.text
+            assert hung.json()["redis"] is False and "Redis unreachable" in hung.json()["reason"]
+            assert took < health.READY_WAIT_S + 1.5, took
+            os.kill(proc.pid, signal.SIGCONT)
+            deadline = time.monotonic() + 10.0
+            while client.get("/readyz").status_code != 200:
+                assert time.monotonic() < deadline
+                time.sleep(0.1)
+    finally:
+        get_settings.cache_clear()
 
 
 # ----------------------------------------------------------------------------- unit, fake clock

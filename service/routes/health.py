@@ -25,6 +25,9 @@ router = APIRouter(tags=["health"])
 
 #: Longest /healthz waits for the worker count, s.
 HEALTH_DETAIL_S = 1.0
+#: Longest /readyz waits for Redis (and, apart, for the blob store), s: a Redis that hangs is
+#: not ready, and the probe says so instead of waiting out the client's timeouts and retries.
+READY_WAIT_S = 2.0
 #: Retry-After of a readiness probe answered 503, s.
 NOT_READY_RETRY_AFTER_S = 5
 
@@ -72,11 +75,15 @@ async def healthz(r: RedisDep, keys: KeysDep) -> Liveness:
     responses={503: {"description": "Redis or the blob store does not answer: not ready."}},
 )
 async def readyz(r: RedisDep, keys: KeysDep, blobs: BlobStoreDep) -> JSONResponse:
-    blob_reason = await run_in_threadpool(_blob_problem, blobs)
     try:
-        workers, depths = await run_in_threadpool(_state, r, keys)
-    except redis.RedisError as exc:
-        reason = "; ".join(filter(None, [f"Redis unreachable: {exc}", blob_reason]))
+        blob_reason = await asyncio.wait_for(run_in_threadpool(_blob_problem, blobs), READY_WAIT_S)
+    except TimeoutError:
+        blob_reason = f"blob store did not answer within {READY_WAIT_S:g} s"
+    try:
+        workers, depths = await asyncio.wait_for(run_in_threadpool(_state, r, keys), READY_WAIT_S)
+    except (redis.RedisError, TimeoutError) as exc:
+        why = str(exc) or f"no answer within {READY_WAIT_S:g} s"
+        reason = "; ".join(filter(None, [f"Redis unreachable: {why}", blob_reason]))
         return _not_ready(reason, Readiness(ready=False, redis=False,
                           blob_store=blob_reason is None, workers=0, reason=reason))  # fmt: skip
     if blob_reason is not None:
