@@ -53,6 +53,8 @@ log = logging.getLogger(__name__)
 
 #: Seconds to wait for a connection to Redis.
 REDIS_CONNECT_TIMEOUT_S = 5.0
+#: The longest the sync client waits for one command's answer, s.
+REDIS_COMMAND_TIMEOUT_S = 5.0
 #: A pooled Redis connection idle this long is checked (PING) before it is used, s.
 REDIS_HEALTH_CHECK_S = 2
 #: Retries of a Redis command on a dropped connection, and the longest pause between two, s.
@@ -92,7 +94,7 @@ async def lifespan(app: FastAPI) -> AsyncIterator[None]:
     configure_logging(settings.log_format, quiet=("rq",))
     adopt_uvicorn_loggers()
     url = settings.effective_redis_url()
-    # a hung Redis must not hang requests; the longest blocking call is the render wait
+    # A hung Redis must not hang requests for long (see each client's socket timeout).
     # After a Redis restart the pooled connections are dead: a connection idle for
     # REDIS_HEALTH_CHECK_S is pinged (and remade) before use, and a command that meets a dropped
     # connection is retried, so the first requests after an outage succeed instead of a 503.
@@ -105,11 +107,17 @@ async def lifespan(app: FastAPI) -> AsyncIterator[None]:
         "driver_info": DriverInfo(lib_version=redis.__version__),
         "client_name": API_CLIENT_NAME,  # how CLIENT LIST names the API's connections
     }
+    # the sync client makes no blocking call (the render wait is the async client's): a
+    # command that takes longer than REDIS_COMMAND_TIMEOUT_S is a Redis that hangs, and is not
+    # sent again (a dropped connection is)
+    dropped = (redis.ConnectionError,)
     app.state.redis = redis.Redis.from_url(
         url,
-        socket_timeout=settings.render_timeout_s + REDIS_CONNECT_TIMEOUT_S,
-        retry=Retry(ExponentialBackoff(cap=REDIS_RETRY_CAP_S), REDIS_RETRIES),
-        **reconnect,
+        socket_timeout=REDIS_COMMAND_TIMEOUT_S,
+        retry=Retry(
+            ExponentialBackoff(cap=REDIS_RETRY_CAP_S), REDIS_RETRIES, supported_errors=dropped
+        ),
+        **(reconnect | {"retry_on_error": list(dropped)}),
     )
     # the render wait (an async BLPOP) is the async client's longest call too
     app.state.aredis = redis.asyncio.Redis.from_url(

@@ -31,7 +31,7 @@ from schemas.settings import get_settings
 from service import inline, ratelimit
 from service.embedded_redis import find_redis_server
 from service.inline import INLINE_MAX_IMAGE_BYTES, InlineSubmissions
-from service.main import create_app
+from service.main import REDIS_COMMAND_TIMEOUT_S, create_app
 from service.routes import health
 from service.store.blobs import CountingBlobStore, FileBlobStore
 
@@ -169,13 +169,14 @@ def test_a_hung_redis_holds_the_loop_once_then_submissions_go_to_the_pool(
     assert len(paused) == 1 and "TimeoutError" in paused[0], paused
 
 
-def test_readiness_answers_503_soon_when_redis_hangs(
+def test_readiness_and_polls_answer_503_soon_when_redis_hangs(
     private_redis: tuple[subprocess.Popen[bytes], str],
     tmp_path: Path,
     monkeypatch: pytest.MonkeyPatch,
 ) -> None:
-    """A readiness probe against a hung Redis: 503 within READY_WAIT_S, not after the sync
-    client's timeouts and retries (minutes); ready again once Redis answers."""
+    """A readiness probe against a hung Redis: 503 within READY_WAIT_S; a status poll (the
+    sync client, in a thread) within one REDIS_COMMAND_TIMEOUT_S, a timeout not retried (it
+    took 4 × 65 s); ready again once Redis answers."""
     proc, url = private_redis
     monkeypatch.setenv("PROXPOSE_REDIS_URL", url)
     monkeypatch.setenv("PROXPOSE_DATA_DIR", str(tmp_path))
@@ -190,6 +191,11 @@ def test_readiness_answers_503_soon_when_redis_hangs(
             assert hung.status_code == 503 and hung.headers["retry-after"], hung.text
             assert hung.json()["redis"] is False and "Redis unreachable" in hung.json()["reason"]
             assert took < health.READY_WAIT_S + 1.5, took
+            start = time.monotonic()
+            poll = client.get("/v1/estimates/" + "0" * 32)
+            took = time.monotonic() - start
+            assert poll.status_code == 503 and poll.headers["retry-after"], poll.text
+            assert took < REDIS_COMMAND_TIMEOUT_S + 1.5, took
             os.kill(proc.pid, signal.SIGCONT)
             deadline = time.monotonic() + 10.0
             while client.get("/readyz").status_code != 200:
