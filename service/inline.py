@@ -3,7 +3,7 @@
 A submission's own work is ~1.5 ms of CPU, most of it the job's Redis commands (a Lua
 reservation, one MULTI) and a small blob write. Run in the thread pool, as FastAPI runs a sync
 route, the submissions of a burst share the GIL with each other and with the event loop: all of
-them finish near the end of the burst (50 at once: server p99 50–75 ms on 2 cores). Run on the
+them finish near the end of the burst (50 at once: server p99 45–97 ms on 2 cores). Run on the
 loop, each one runs to its end in turn, and the same burst stays under 50 ms (bench/README.md,
 "Eighth look").
 
