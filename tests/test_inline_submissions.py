@@ -22,14 +22,13 @@ from typing import Any
 import numpy as np
 import pytest
 import redis
-from conftest import free_port, settings_on_redis
+from conftest import settings_on_redis, start_redis_server
 from fastapi.testclient import TestClient
 from PIL import Image
 from service_api_helpers import base_request, submit
 
 from schemas.settings import get_settings
 from service import inline, ratelimit
-from service.embedded_redis import find_redis_server
 from service.inline import INLINE_MAX_IMAGE_BYTES, InlineSubmissions
 from service.main import REDIS_COMMAND_TIMEOUT_S, create_app
 from service.routes import health
@@ -95,26 +94,13 @@ def test_inline_submissions_can_be_turned_off(
 @pytest.fixture
 def private_redis(tmp_path: Path) -> Iterator[tuple[subprocess.Popen[bytes], str]]:
     """A redis-server of this test's own (it is stopped and continued)."""
-    binary = find_redis_server()
-    assert binary is not None
-    port = free_port()
-    argv = [binary, "--port", str(port), "--bind", "127.0.0.1", "--save", "", "--dir"]
-    proc = subprocess.Popen([*argv, str(tmp_path)], stdout=subprocess.DEVNULL)
-    client = redis.Redis(port=port)
-    deadline = time.monotonic() + 10.0
-    while True:
-        try:
-            client.ping()
-            break
-        except redis.ConnectionError:
-            assert time.monotonic() < deadline and proc.poll() is None
-            time.sleep(0.05)
+    server = start_redis_server(tmp_path)
     try:
-        yield proc, f"redis://127.0.0.1:{port}/0"
+        yield server.proc, server.url(0)
     finally:
-        os.kill(proc.pid, signal.SIGCONT)
-        proc.kill()
-        proc.wait()
+        os.kill(server.proc.pid, signal.SIGCONT)
+        server.proc.kill()
+        server.proc.wait()
 
 
 @pytest.mark.parametrize("rate_limit", [True, False], ids=["rate-limited", "no-rate-limit"])
