@@ -19,6 +19,7 @@ from prometheus_client.core import (
 from prometheus_client.registry import Collector
 from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
+from service.inline import PAUSE_S
 from service.store import JobStats, Keys, Queues
 from service.store.blobs import CountingBlobStore
 from service.store.budget import redis_memory
@@ -60,7 +61,7 @@ class Metrics:
         self.inline_paused = Counter(
             "proxpose_inline_submissions_paused",
             "Times submissions left the event loop for the thread pool (a Redis error or a slow "
-            "call on the loop; service/inline.py), for 30 s each.",
+            f"call on the loop; service/inline.py), for {PAUSE_S:g} s each.",
             registry=own,
         )
         if multiprocess:
