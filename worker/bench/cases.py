@@ -40,6 +40,8 @@ from worker.engine.posemath import pose_from_schema
 log = logging.getLogger(__name__)
 
 DEMO_MODEL = "demo"
+#: The procedural small body (worker.demo.asteroid), held out of the estimator's tuning.
+ASTEROID_MODEL = "asteroid"
 #: Public models under the shared models directory, by bench name.
 SHARED_MODEL_FILES = {
     "iss": "iss/iss_clean.glb",
@@ -120,8 +122,9 @@ def resolve_models(
 ) -> tuple[list[tuple[str, Path]], list[str]]:
     """Paths of the bench models, and a message per model skipped because its file is absent.
 
-    ``demo`` is the procedural satellite and ``terrain``, ``terrain-ridged`` the procedural
-    terrains (written under ``data_dir`` on first use), ``iss``,
+    ``demo`` is the procedural satellite, ``asteroid`` the procedural small body and
+    ``terrain``, ``terrain-ridged`` the procedural terrains (written under ``data_dir`` on
+    first use), ``iss``,
     ``aura``, ``phobos`` are looked up in ``models_dir``; any other name is a mesh file path.
     """
     found: list[tuple[str, Path]] = []
@@ -134,6 +137,11 @@ def resolve_models(
             from worker.demo.satellite import demo_satellite_path
 
             found.append((name, demo_satellite_path(data_dir).resolve()))
+            continue
+        if name == ASTEROID_MODEL:
+            from worker.demo.asteroid import asteroid_path
+
+            found.append((name, asteroid_path(data_dir).resolve()))
             continue
         path = models_dir / SHARED_MODEL_FILES[name] if name in SHARED_MODEL_FILES else Path(name)
         label = name if name in SHARED_MODEL_FILES else path.stem

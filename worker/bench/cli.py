@@ -148,8 +148,8 @@ def _add_suite_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--models",
         type=_csv,
-        help="demo, iss, aura, phobos, terrain, terrain-ridged or mesh paths (default: the four "
-        "spacecraft)",
+        help="demo, iss, aura, phobos, asteroid, terrain, terrain-ridged or mesh paths "
+        "(default: demo, iss, aura, phobos)",
     )
     parser.add_argument(
         "--terrain",
