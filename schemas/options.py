@@ -140,6 +140,14 @@ class EstimateOptions(BaseModel):
         "better. Learned rows miss the near-cancellation of a weakly seen direction (a flat "
         "target's out-of-plane rotation against a lateral shift) and stop short there.",
     )
+    reflectance: Literal["lambert", "fit"] = Field(
+        default="lambert",
+        description="Reflectance law of the renders: 'lambert'; 'fit' = fit the share of a "
+        "Lommel-Seeliger law (regolith, which does not darken towards the limb) from the "
+        "image when the features are made, and compare with the reference as a Lambertian "
+        "surface would show it. For untextured small bodies; on spacecraft it can cost "
+        "accuracy (a crease's gain step is placed at the estimated pose).",
+    )
     fit_sun: bool = Field(
         default=True,
         description="Solve for a tilt of the sun (up to 10° from the request's direction) "

@@ -24,6 +24,7 @@ from numpy.typing import NDArray
 from worker.align.blur import relative_blur
 from worker.align.edges import detect_edge_points, normal_shift
 from worker.align.features import detect_corners, match_features, structure_whitening, track
+from worker.align.reflectance import W_MIN, fit_law, lambertised, law_angles
 from worker.align.session import RenderedView, Session
 from worker.engine.images import Box, srgb_decode, srgb_encode, to_grey
 from worker.engine.photometry import (
@@ -92,6 +93,12 @@ class TrackedFeatures:
                 session.ref_image, _blurred(view.linear, self.blur_render)
             )
             ref_linear = srgb_decode(on_render_scale(session.ref_image, self.tone_curve))
+        # The reflectance law: a regolith that does not darken towards the limb as Lambert
+        # does bends every shading feature of an untextured body (worker.align.reflectance).
+        #: Its Lommel–Seeliger share, kept for the sets carried from this one (0: Lambert).
+        self.law_w = 0.0
+        if session.options.reflectance == "fit":
+            ref_linear = self._fit_law(session, view, ref_linear)
         self.scale = contrast_scale(self._render_grey(view), box=work_box(view))
         ref_grey = srgb_encode(ref_linear)
         self.ref8 = local_normalise(ref_grey, self.scale)
@@ -139,6 +146,8 @@ class TrackedFeatures:
         else:
             part = on_render_scale(box.of(ref_image), self.tone_curve)
             ref_grey = box.paste(part, view.grey.shape)
+        if self.law_w > 0:
+            ref_grey = lambertised(ref_grey, self.law_w, law_angles(session, view))
         new.scale = contrast_scale(self._render_grey(view), box=box)
         new.ref_f = local_normalise_f(ref_grey, new.scale, box=box)
         new.ref8 = normalised_to_u8(new.ref_f, box)
@@ -160,6 +169,17 @@ class TrackedFeatures:
         new.A = np.concatenate([A_corners, self.A[kc:][ok_e]])
         new.feature_normals = self.feature_normals[keep]
         return new, keep
+
+    def _fit_law(self, session: Session, view: RenderedView, ref_linear: Array) -> Array:
+        """The reference as a Lambertian surface would show it, when another law explains it
+        better (worker.align.reflectance); its tone curve is then the one fitted with that law."""
+        linear = _blurred(view.linear, self.blur_render)
+        fit = fit_law(session.ref_image, linear, law_angles(session, view))
+        if fit is None or fit[0].w < W_MIN:
+            return ref_linear
+        law = fit[0]
+        self.tone_curve, self.law_w = law.curve, law.w
+        return law.reference
 
     def _render_grey(self, view: RenderedView) -> Array:
         """The render's grey at the reference's sharpness (kept for the last view)."""

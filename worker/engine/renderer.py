@@ -22,6 +22,7 @@ from worker.engine.camera import PinholeCamera, RenderPlan, plan_render, warp_to
 from worker.engine.exceptions import RenderError
 from worker.engine.kernels import frozen_render, plain_render, use_frozen
 from worker.engine.meshes import LoadedModel
+from worker.engine.rays import intersect
 from worker.engine.scene_meshes import scene_mesh
 
 Array = NDArray[np.float64]
@@ -37,8 +38,6 @@ SHADINGS = ("file", "faceted")
 #: Pixel sampler: multi-jittered samples cut the edge noise of a render about 2× against
 #: independent ones at the same count, and render noise moves the cost minimum.
 SAMPLER = "multijitter"
-#: Ray batches are padded to a multiple of this, so Dr.Jit reuses one compiled kernel.
-RAY_BATCH = 4096
 #: A sensor: its scale, and its window's ladder side (full-resolution px; 0: the whole image).
 SensorKey = tuple[float, int]
 
@@ -355,8 +354,27 @@ class Renderer:
             return np.zeros((0, 3)), np.zeros(0, dtype=bool)
         d_model = self.camera_at(scale, window).rays(uv) @ R  # (Rᵀ d)ᵀ
         origin = -R.T @ t
-        hit, points = _intersect(self.scene, origin, d_model)
+        hit, points, _ = intersect(self.scene, origin, d_model)
         return points[:n], hit[:n]
+
+    def surface_normals(
+        self,
+        R: ArrayLike,
+        t: ArrayLike,
+        uv: ArrayLike,
+        scale: float = 1.0,
+        window: Window | None = None,
+    ) -> tuple[Array, NDArray[np.bool_]]:
+        """Shading normals (N, 3, camera frame) of the surface seen through pixels uv (N, 2)
+        at pose (R, t) in the image at ``scale``, and which rays hit the model."""
+        R = np.asarray(R, dtype=np.float64)
+        uv = np.atleast_2d(np.asarray(uv, dtype=np.float64))
+        if len(uv) == 0:
+            return np.zeros((0, 3)), np.zeros(0, dtype=bool)
+        d_model = self.camera_at(scale, window).rays(uv) @ R
+        hit, _, normals = intersect(self.scene, -R.T @ np.asarray(t, dtype=np.float64), d_model)
+        n = len(uv)
+        return normals[:n] @ R.T, hit[:n]
 
     def coverage(self, R: ArrayLike, t: ArrayLike, grid: int = 64) -> float:
         """Fraction of the image the model covers at (R, t), from a grid of rays."""
@@ -364,34 +382,3 @@ class Renderer:
         us, vs = np.linspace(0, cam.width - 1, grid), np.linspace(0, cam.height - 1, grid)
         uv = np.stack(np.meshgrid(us, vs), axis=-1).reshape(-1, 2)
         return float(self.raycast(R, t, uv)[1].mean())
-
-
-def _intersect(scene: object, origin: Array, dirs: Array) -> tuple[NDArray[np.bool_], Array]:
-    """Intersect rays (common origin) with the scene; batches padded to RAY_BATCH."""
-    import drjit as dr
-    import mitsuba as mi
-
-    n = len(dirs)
-    if mi.variant().startswith("scalar"):
-        hits = np.zeros(n, dtype=bool)
-        pts = np.zeros((n, 3))
-        o = mi.Point3f(*origin)
-        for i, d in enumerate(dirs):
-            si = scene.ray_intersect(mi.Ray3f(o, mi.Vector3f(*d)))  # type: ignore[attr-defined]
-            if si.is_valid():
-                hits[i] = True
-                pts[i] = [si.p.x, si.p.y, si.p.z]
-        return hits, pts
-    padded = -(-n // RAY_BATCH) * RAY_BATCH
-    D = np.zeros((padded, 3))
-    D[:n] = dirs
-    D[n:] = dirs[0]
-    ray = mi.Ray3f(
-        mi.Point3f(*[mi.Float(np.full(padded, c, dtype=np.float32)) for c in origin]),
-        mi.Vector3f(*[mi.Float(D[:, k].astype(np.float32)) for k in range(3)]),
-    )
-    si = scene.ray_intersect(ray)  # type: ignore[attr-defined]
-    hits = np.array(si.is_valid(), dtype=bool)
-    pts = np.stack([np.array(si.p.x), np.array(si.p.y), np.array(si.p.z)], axis=1)
-    dr.eval()
-    return hits, pts.astype(np.float64)
