@@ -16,10 +16,8 @@ import pathlib
 import numpy as np
 import trimesh
 from numpy.typing import NDArray
-from trimesh.exchange.gltf import export_glb
-from trimesh.visual.material import PBRMaterial
 
-from service.store.files import write_atomic
+from worker.demo.geometry import untextured_mesh, write_glb
 
 Array = NDArray[np.float64]
 
@@ -69,23 +67,12 @@ def asteroid_mesh(seed: int = 0, subdivisions: int = SUBDIVISIONS) -> trimesh.Tr
     domes = np.sqrt(np.clip(1.0 - (angle / BOULDER_RADIUS_RAD) ** 2, 0.0, None))
     relief += BOULDER_HEIGHT_M * domes.sum(axis=1)
     shape = trimesh.Trimesh(v, sphere.faces, process=False)
-    mesh = trimesh.Trimesh(v + shape.vertex_normals * relief[:, None], sphere.faces, process=False)
-    mesh.visual = trimesh.visual.TextureVisuals(
-        material=PBRMaterial(
-            name="regolith",
-            baseColorFactor=[ALBEDO] * 3 + [1.0],
-            metallicFactor=0.0,
-            roughnessFactor=1.0,
-        )
-    )
-    _ = mesh.vertex_normals  # computed now, so the export carries them
-    return mesh
+    return untextured_mesh(v + shape.vertex_normals * relief[:, None], sphere.faces, ALBEDO)
 
 
 def write_asteroid(path: pathlib.Path, seed: int = 0) -> pathlib.Path:
     """Export the body as a binary glTF (GLB) with vertex normals, atomically."""
-    data = export_glb(trimesh.Scene(asteroid_mesh(seed)), include_normals=True)
-    return write_atomic(pathlib.Path(path), data)
+    return write_glb(path, asteroid_mesh(seed))
 
 
 def asteroid_path(data_dir: pathlib.Path) -> pathlib.Path:

@@ -1,18 +1,24 @@
 """Mesh primitives of the demo satellite: flat-shaded boxes, surfaces of revolution, transforms.
 
 Primitives return :data:`Parts` (vertices, faces, normals, UVs) in metres; :func:`textured_mesh`
-turns them into a trimesh mesh with its own PBR material.
+turns them into a trimesh mesh with its own PBR material. The untextured bodies (the demo
+terrain, the bench's asteroid) take one grey material (:func:`untextured_mesh`), and every demo
+model is written by :func:`write_glb`.
 """
 
 from __future__ import annotations
+
+from pathlib import Path
 
 import numpy as np
 import trimesh
 from numpy.typing import ArrayLike, NDArray
 from PIL import Image
+from trimesh.exchange.gltf import export_glb
 from trimesh.visual import TextureVisuals
 from trimesh.visual.material import PBRMaterial
 
+from service.store.files import write_atomic
 from worker.demo.textures import Rect
 
 Parts = tuple[NDArray, NDArray, NDArray, NDArray]  # vertices, faces, normals, uv
@@ -114,3 +120,25 @@ def textured_mesh(
     return trimesh.Trimesh(
         v, f, vertex_normals=n, visual=TextureVisuals(uv=uv, material=mat), process=False
     )
+
+
+def untextured_mesh(vertices: NDArray, faces: NDArray, albedo: float) -> trimesh.Trimesh:
+    """Unprocessed mesh with one grey, rough, non-metallic material ("regolith") and smooth
+    vertex normals, computed now so that an export carries them."""
+    mesh = trimesh.Trimesh(vertices, faces, process=False)
+    mesh.visual = TextureVisuals(
+        material=PBRMaterial(
+            name="regolith",
+            baseColorFactor=[albedo] * 3 + [1.0],
+            metallicFactor=0.0,
+            roughnessFactor=1.0,
+        )
+    )
+    _ = mesh.vertex_normals
+    return mesh
+
+
+def write_glb(path: Path, model: trimesh.Trimesh | trimesh.Scene) -> Path:
+    """Export ``model`` as a binary glTF (GLB) with its vertex normals, atomically."""
+    scene = model if isinstance(model, trimesh.Scene) else trimesh.Scene(model)
+    return write_atomic(Path(path), export_glb(scene, include_normals=True))

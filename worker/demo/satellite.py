@@ -16,10 +16,8 @@ from dataclasses import dataclass
 import numpy as np
 import trimesh
 from numpy.typing import NDArray
-from trimesh.exchange.gltf import export_glb
 
-from service.store.files import write_atomic
-from worker.demo.geometry import Parts, box, cylinder, revolve, textured_mesh, tf
+from worker.demo.geometry import Parts, box, cylinder, revolve, textured_mesh, tf, write_glb
 from worker.demo.textures import dish_texture, mli_texture, part_texture, solar_texture
 
 DEMO_MODEL_NAME = "Demo satellite (procedural)"
@@ -314,8 +312,7 @@ def write_demo_satellite(path: pathlib.Path, seed: int = 0) -> pathlib.Path:
     pathlib.Path
         ``path``.
     """
-    data = export_glb(build_demo_satellite(seed), include_normals=True)
-    return write_atomic(pathlib.Path(path), data)
+    return write_glb(path, build_demo_satellite(seed))
 
 
 def demo_satellite_path(data_dir: pathlib.Path) -> pathlib.Path:

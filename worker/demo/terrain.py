@@ -18,10 +18,8 @@ import pathlib
 import numpy as np
 import trimesh
 from numpy.typing import NDArray
-from trimesh.exchange.gltf import export_glb
-from trimesh.visual.material import PBRMaterial
 
-from service.store.files import write_atomic
+from worker.demo.geometry import untextured_mesh, write_glb
 
 Array = NDArray[np.float64]
 
@@ -105,26 +103,14 @@ def heightfield_mesh(heights: Array, side_m: float = TERRAIN_SIDE_M) -> trimesh.
     b, c, d = a + 1, a + n, a + n + 1
     # counter-clockwise seen from +y: (a, c, b) has normal (c − a) × (b − a) ∝ +y
     F = np.concatenate([np.stack([a, c, b], 1), np.stack([b, c, d], 1)])
-    mesh = trimesh.Trimesh(V, F, process=False)
-    mesh.visual = trimesh.visual.TextureVisuals(
-        material=PBRMaterial(
-            name="regolith",
-            baseColorFactor=[REGOLITH_ALBEDO] * 3 + [1.0],
-            metallicFactor=0.0,
-            roughnessFactor=1.0,
-        )
-    )
-    _ = mesh.vertex_normals  # computed now, so the export carries them
-    return mesh
+    return untextured_mesh(V, F, REGOLITH_ALBEDO)
 
 
 def write_demo_terrain(
     path: pathlib.Path, seed: int = 0, generator: str = "fractal", posts: int = TERRAIN_POSTS
 ) -> pathlib.Path:
     """Export the terrain as a binary glTF (GLB) with vertex normals, atomically."""
-    mesh = heightfield_mesh(heightfield(seed, generator, posts))
-    data = export_glb(trimesh.Scene(mesh), include_normals=True)
-    return write_atomic(pathlib.Path(path), data)
+    return write_glb(path, heightfield_mesh(heightfield(seed, generator, posts)))
 
 
 def demo_terrain_path(data_dir: pathlib.Path) -> pathlib.Path:
