@@ -346,16 +346,8 @@ class Renderer:
 
         Returns the points and a mask of the rays that hit the model.
         """
-        R = np.asarray(R, dtype=np.float64)
-        t = np.asarray(t, dtype=np.float64)
-        uv = np.atleast_2d(np.asarray(uv, dtype=np.float64))
-        n = len(uv)
-        if n == 0:
-            return np.zeros((0, 3)), np.zeros(0, dtype=bool)
-        d_model = self.camera_at(scale, window).rays(uv) @ R  # (Rᵀ d)ᵀ
-        origin = -R.T @ t
-        hit, points, _ = intersect(self.scene, origin, d_model)
-        return points[:n], hit[:n]
+        hit, points, _ = self._cast(R, t, uv, scale, window)
+        return points, hit
 
     def surface_normals(
         self,
@@ -366,15 +358,25 @@ class Renderer:
         window: Window | None = None,
     ) -> tuple[Array, NDArray[np.bool_]]:
         """Shading normals (N, 3, camera frame) of the surface seen through pixels uv (N, 2)
-        at pose (R, t) in the image at ``scale``, and which rays hit the model."""
+        at pose (R, t) in the image at ``scale`` (in ``window`` of it), and which rays hit
+        the model."""
+        hit, _, normals = self._cast(R, t, uv, scale, window)
+        return normals @ np.asarray(R, dtype=np.float64).T, hit
+
+    def _cast(
+        self, R: ArrayLike, t: ArrayLike, uv: ArrayLike, scale: float, window: Window | None
+    ) -> tuple[NDArray[np.bool_], Array, Array]:
+        """The rays through pixels uv at pose (R, t), cast in the model frame: hits, points
+        and shading normals (model frame), one per pixel."""
         R = np.asarray(R, dtype=np.float64)
+        t = np.asarray(t, dtype=np.float64)
         uv = np.atleast_2d(np.asarray(uv, dtype=np.float64))
-        if len(uv) == 0:
-            return np.zeros((0, 3)), np.zeros(0, dtype=bool)
-        d_model = self.camera_at(scale, window).rays(uv) @ R
-        hit, _, normals = intersect(self.scene, -R.T @ np.asarray(t, dtype=np.float64), d_model)
         n = len(uv)
-        return normals[:n] @ R.T, hit[:n]
+        if n == 0:
+            return np.zeros(0, dtype=bool), np.zeros((0, 3)), np.zeros((0, 3))
+        d_model = self.camera_at(scale, window).rays(uv) @ R  # (Rᵀ d)ᵀ
+        hit, points, normals = intersect(self.scene, -R.T @ t, d_model)
+        return hit[:n], points[:n], normals[:n]
 
     def coverage(self, R: ArrayLike, t: ArrayLike, grid: int = 64) -> float:
         """Fraction of the image the model covers at (R, t), from a grid of rays."""
