@@ -13,7 +13,7 @@ that needs most of them takes ``CallerDep``, one node, instead of a dozen.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 from typing import Annotated
 
 import redis
@@ -120,15 +120,18 @@ class Caller:
 
 
 async def get_caller(request: Request) -> Caller:
-    settings = get_settings()
     principal = await get_principal(request)  # 401 without one, as PrincipalDep
-    state = request.app.state
-    r, keys = state.redis, Keys(settings.redis_prefix)
+    return _caller(request, get_settings(), principal, request.app.state.redis)
+
+
+def _caller(request: Request, settings: Settings, principal: Principal, r: redis.Redis) -> Caller:
+    """The caller with its job and model stores on the Redis client ``r``."""
+    keys = Keys(settings.redis_prefix)
     return Caller(
         settings=settings,
         principal=principal,
         jobs=_job_store(request, r, keys, settings, principal),
-        models=ModelStore(r, keys, viewer=principal, blobs=state.blobs),
+        models=ModelStore(r, keys, viewer=principal, blobs=request.app.state.blobs),
     )
 
 
@@ -137,10 +140,7 @@ CallerDep = Annotated[Caller, Depends(get_caller)]
 
 def caller_on(request: Request, caller: Caller, r: redis.Redis) -> Caller:
     """``caller`` with its job and model stores on the Redis client ``r``."""
-    keys = caller.jobs.keys
-    jobs = _job_store(request, r, keys, caller.settings, caller.principal)
-    models = ModelStore(r, keys, viewer=caller.principal, blobs=request.app.state.blobs)
-    return replace(caller, jobs=jobs, models=models)
+    return _caller(request, caller.settings, caller.principal, r)
 
 
 FORM_TYPES = ("multipart/form-data", "application/x-www-form-urlencoded")
