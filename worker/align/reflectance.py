@@ -126,14 +126,14 @@ def fit_law(
     if sel is None:
         return None
 
-    def trial(w: float) -> tuple[float, Law, NDArray[np.float32]]:
+    def trial(w: float) -> tuple[float, Law]:
         g = law_gain(w, angles)
         curve = reference_tone_curve(reference, linear * g[..., None])
         ref = srgb_decode(on_render_scale(reference, curve))
-        return _misfit(ref, render * g, sel), Law(w, curve, ref), g
+        return _misfit(ref, render * g, sel), Law(w, curve, (ref / g).astype(np.float32))
 
     trials = [trial(w) for w in LAW_GRID]
-    misfits = [m for m, _, _ in trials]
+    misfits = [m for m, _ in trials]
     i = int(np.argmin(misfits))
     best = trials[i]
     if 0 < i < len(LAW_GRID) - 1:
@@ -142,8 +142,7 @@ def fit_law(
             step = LAW_GRID[1] - LAW_GRID[0]
             refined = trial(LAW_GRID[i] + 0.5 * (a - c) / (a - 2 * b + c) * step)
             best = refined if refined[0] < best[0] else best
-    _, law, g = best
-    return Law(law.w, law.curve, (law.reference / g).astype(np.float32)), misfits
+    return best[1], misfits
 
 
 def lambertised(reference_grey: FloatImage, w: float, angles: Angles) -> FloatImage:
