@@ -11,9 +11,12 @@ Array = NDArray[np.float64]
 RAY_BATCH = 4096
 
 
-def intersect(scene: object, origin: Array, dirs: Array) -> tuple[NDArray[np.bool_], Array, Array]:
+def intersect(
+    scene: object, origin: Array, dirs: Array, geometric: bool = False
+) -> tuple[NDArray[np.bool_], Array, Array]:
     """Intersect rays (common origin) with the scene; batches padded to RAY_BATCH. Returns the
-    hits, the points and the shading normals (model frame; zeros where a ray missed)."""
+    hits, the points and the shading normals (model frame; zeros where a ray missed), or with
+    ``geometric`` the normals of the triangles hit."""
     import drjit as dr
     import mitsuba as mi
 
@@ -28,7 +31,8 @@ def intersect(scene: object, origin: Array, dirs: Array) -> tuple[NDArray[np.boo
             if si.is_valid():
                 hits[i] = True
                 pts[i] = [si.p.x, si.p.y, si.p.z]
-                nrm[i] = [si.sh_frame.n.x, si.sh_frame.n.y, si.sh_frame.n.z]
+                m = si.n if geometric else si.sh_frame.n
+                nrm[i] = [m.x, m.y, m.z]
         return hits, pts, nrm
     padded = -(-n // RAY_BATCH) * RAY_BATCH
     D = np.zeros((padded, 3))
@@ -41,7 +45,7 @@ def intersect(scene: object, origin: Array, dirs: Array) -> tuple[NDArray[np.boo
     si = scene.ray_intersect(ray)  # type: ignore[attr-defined]
     hits = np.array(si.is_valid(), dtype=bool)
     pts = np.stack([np.array(si.p.x), np.array(si.p.y), np.array(si.p.z)], axis=1)
-    sh = si.sh_frame.n
+    sh = si.n if geometric else si.sh_frame.n
     nrm = np.stack([np.array(sh.x), np.array(sh.y), np.array(sh.z)], axis=1)
     dr.eval()
     nrm[~hits] = 0.0

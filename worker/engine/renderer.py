@@ -356,18 +356,25 @@ class Renderer:
         uv: ArrayLike,
         scale: float = 1.0,
         window: Window | None = None,
+        geometric: bool = False,
     ) -> tuple[Array, NDArray[np.bool_]]:
         """Shading normals (N, 3, camera frame) of the surface seen through pixels uv (N, 2)
         at pose (R, t) in the image at ``scale`` (in ``window`` of it), and which rays hit
-        the model."""
-        hit, _, normals = self._cast(R, t, uv, scale, window)
+        the model; with ``geometric`` the normals of the triangles hit."""
+        hit, _, normals = self._cast(R, t, uv, scale, window, geometric)
         return normals @ np.asarray(R, dtype=np.float64).T, hit
 
     def _cast(
-        self, R: ArrayLike, t: ArrayLike, uv: ArrayLike, scale: float, window: Window | None
+        self,
+        R: ArrayLike,
+        t: ArrayLike,
+        uv: ArrayLike,
+        scale: float,
+        window: Window | None,
+        geometric: bool = False,
     ) -> tuple[NDArray[np.bool_], Array, Array]:
         """The rays through pixels uv at pose (R, t), cast in the model frame: hits, points
-        and shading normals (model frame), one per pixel."""
+        and shading (or ``geometric``) normals (model frame), one per pixel."""
         R = np.asarray(R, dtype=np.float64)
         t = np.asarray(t, dtype=np.float64)
         uv = np.atleast_2d(np.asarray(uv, dtype=np.float64))
@@ -375,7 +382,7 @@ class Renderer:
         if n == 0:
             return np.zeros(0, dtype=bool), np.zeros((0, 3)), np.zeros((0, 3))
         d_model = self.camera_at(scale, window).rays(uv) @ R  # (Rᵀ d)ᵀ
-        hit, points, normals = intersect(self.scene, -R.T @ t, d_model)
+        hit, points, normals = intersect(self.scene, -R.T @ t, d_model, geometric)
         return hit[:n], points[:n], normals[:n]
 
     def coverage(self, R: ArrayLike, t: ArrayLike, grid: int = 64) -> float:
