@@ -135,6 +135,12 @@ class EstimateResult(BaseModel):
         "each triangle's own (options.shading_normals 'auto' picks the one that explains the "
         "image better).",
     )
+    reflectance_share: float = Field(
+        default=0.0,
+        description="Share w of a Lommel-Seeliger law (regolith) in the law the reference was "
+        "compared under, as the first fit found it (options.reflectance 'fit', or 'auto' on a "
+        "smooth body): 0 = the renders' Lambert law, no other fitted or none tried.",
+    )
     errors: Errors | None = None
     initial_errors: Errors | None = None
     timings_s: dict[str, float] = Field(

@@ -34,6 +34,7 @@ METHOD_PRESETS: dict[str, dict[str, Any]] = {
         "fit_sun": False,
         "geometric_pass": False,
         "shading_normals": "file",
+        "reflectance": "lambert",
         "pyramid": False,
         "window": False,
         "refine_passes": 1,
@@ -140,13 +141,16 @@ class EstimateOptions(BaseModel):
         "better. Learned rows miss the near-cancellation of a weakly seen direction (a flat "
         "target's out-of-plane rotation against a lateral shift) and stop short there.",
     )
-    reflectance: Literal["lambert", "fit"] = Field(
-        default="lambert",
+    reflectance: Literal["auto", "lambert", "fit"] = Field(
+        default="auto",
         description="Reflectance law of the renders: 'lambert'; 'fit' = fit the share of a "
         "Lommel-Seeliger law (regolith, which does not darken towards the limb) from the "
         "image when the features are made, and compare with the reference as a Lambertian "
-        "surface would show it. For untextured small bodies; on spacecraft it can cost "
-        "accuracy (a crease's gain step is placed at the estimated pose).",
+        "surface would show it; 'auto' = 'fit' on a smooth body (a shading normal that turns "
+        "from pixel to pixel almost everywhere it is lit and stays near its triangles' "
+        "normals: an asteroid, a moon), else "
+        "'lambert' (on spacecraft the fit costs accuracy: a crease's gain step is placed at "
+        "the estimated pose, and a few flat faces do not tell the law from their albedos).",
     )
     fit_sun: bool = Field(
         default=True,

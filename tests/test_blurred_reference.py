@@ -45,6 +45,7 @@ def _corner_misfit(renderer: Renderer, R: np.ndarray, t: np.ndarray) -> tuple[fl
         ref_image=reference,
         ref_grey=to_grey(reference),
         options=EstimateOptions().resolved(),
+        smooth_body=False,  # a spacecraft: no reflectance law fitted
     )
     linear = renderer.render(R, t, seed=0)
     view = RenderedView(R, t, linear, render_to_grey(linear))

@@ -36,12 +36,14 @@ def view(shift: np.ndarray = STILL) -> RenderedView:
 
 def session(**options: object) -> SimpleNamespace:
     """What the feature sets read of a session: the reference (the render moved by SHIFT, from
-    another camera: 0.8× the light, gamma 2 instead of sRGB) and the options."""
+    another camera: 0.8× the light, gamma 2 instead of sRGB), the options, and that the target
+    is no smooth body (no reflectance law is fitted: reflectance "auto")."""
     reference = (0.8 * scene(SHIFT)) ** 0.5
     return SimpleNamespace(
         ref_image=reference,
         ref_grey=reference,
         options=EstimateOptions(**options).resolved(),  # type: ignore[arg-type]
+        smooth_body=False,
     )
 
 
@@ -111,7 +113,10 @@ def test_a_window_pasted_on_the_sky_is_processed_only_around_itself() -> None:
     def frame_session(shift: np.ndarray) -> SimpleNamespace:
         reference = on_frame((0.8 * scene(shift)) ** 0.5) + 0.01  # a faint sky around
         return SimpleNamespace(
-            ref_image=reference, ref_grey=reference, options=EstimateOptions().resolved()
+            ref_image=reference,
+            ref_grey=reference,
+            options=EstimateOptions().resolved(),
+            smooth_body=False,
         )
 
     out = []

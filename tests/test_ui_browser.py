@@ -203,6 +203,8 @@ def test_submit_an_estimate_through_the_form_and_read_the_result(
     expect(page.locator("#errors-table")).to_contain_text("rotation (°)")
     tilt = f"{result['sun_tilt_deg']:.2f}° from the request's"
     expect(page.locator("#run-facts")).to_contain_text(tilt)  # the sun the fit ended with
+    assert result["reflectance_share"] == 0.0  # demo-sat is no smooth body: Lambert kept
+    expect(page.locator("#run-facts")).not_to_contain_text("Reflectance law")
     expect(page.locator("#request-json")).to_contain_text('"model_id": "demo-sat"')
     with page.expect_download() as download:
         page.click("#download-result")

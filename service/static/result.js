@@ -98,6 +98,9 @@ function showRunFacts(result) {
     ...(result.sun_direction
       ? [["Sun used (camera frame)", `[${result.sun_direction.map((v) => fixed(v, 4)).join(", ")}], ${fixed(result.sun_tilt_deg, 2)}° from the request's`]]
       : []),
+    ...(result.reflectance_share
+      ? [["Reflectance law", `Lambert + ${fixed(result.reflectance_share, 2)} Lommel–Seeliger (fitted from the image)`]]
+      : []),
     ["Mitsuba variant", result.variant],
     ...Object.entries(result.timings_s).map(([k, v]) => [`Time in ${k}`, seconds(v)]),
   ];

@@ -18,11 +18,18 @@ for each w. With w ≥ W_MIN the reference, on the render's scale, is divided by
 shows what a Lambertian surface would, and the features are made and measured on that. A
 Lambertian reference gives w = 0 and nothing changes.
 
-Opt-in (``options.reflectance = "fit"``): the reference is divided by a gain computed at the
-estimated pose, and where the gain steps (a spacecraft's creases, between faces of other μ)
-that step sits where the estimate puts the crease, not where the image shows it; on the
-spacecraft of the robustness suite under `regolith` the estimates got worse (bench/README.md).
-Smooth untextured bodies are what it is for.
+The reference is divided by a gain computed at the estimated pose, and where the gain steps (a
+spacecraft's creases, between faces of other μ) that step sits where the estimate puts the
+crease, not where the image shows it; and on a few flat faces (few distinct μ₀, μ) the share is
+poorly told apart from the faces' albedos. On the spacecraft of the robustness suite under
+`regolith` the estimates got worse (bench/README.md). So by default (``options.reflectance =
+"auto"``) the law is fitted only on a smooth body (:func:`smoothness`): one whose shading
+normal turns from pixel to pixel almost everywhere it is lit, without leaning far from its
+triangles' normals. Measured on the robustness suite's views: Phobos and the bench's asteroid
+turn on 0.98-1.0 of their lit pixels and lean 2-9° (90th percentile); the demo satellite turns
+on 0.005-0.58 (flat panels); Aura shows too few lit pixels at half size to decide, 0.4-0.7 at
+full size; ISS turns on 0.96-1.0 but leans 41-47° (its vertex normals were averaged across its
+creases). ``"fit"`` fits the law on any target, ``"lambert"`` never.
 """
 
 from __future__ import annotations
@@ -36,6 +43,7 @@ from numpy.typing import NDArray
 from worker.align.session import RenderedView, Session
 from worker.engine.images import FloatImage, srgb_decode, srgb_encode, to_grey
 from worker.engine.photometry import ToneCurve, on_render_scale, reference_tone_curve
+from worker.engine.renderer import Renderer
 
 Array = NDArray[np.float64]
 
@@ -51,6 +59,16 @@ MIN_COSINE = 0.1
 OUTLINE_MARGIN_PX = 3
 #: Smoothing of both images before they are compared (noise, a pixel of misalignment), px.
 SMOOTH_PX = 1.5
+#: A smooth body: at least this share of its lit pixels has a shading normal that turns by more
+#: than TURN_MIN_DEG to the next pixel's (a flat face's normals differ by float rounding; a
+#: sphere 10 000 px across turns by 0.018° per pixel). Decided on up to GATE_PIXELS pixels.
+CURVED_MIN = 0.9
+TURN_MIN_DEG = 0.01
+GATE_PIXELS = 2000
+#: ... and its shading normals lean from its triangles' by at most this (90th percentile), °:
+#: a model whose vertex normals were averaged across its creases (ISS's lean 41-47°) turns
+#: everywhere too, but it is a spacecraft (Phobos 7-9°, the bench's asteroid 2-3°).
+LEAN_MAX_DEG = 20.0
 
 
 @dataclass(frozen=True)
@@ -91,6 +109,46 @@ def law_angles(session: Session, view: RenderedView) -> Angles:
     mu[ys, xs] = np.abs(facing)
     hit[ys, xs] = ok
     return Angles(mu0, mu, hit)
+
+
+@dataclass(frozen=True)
+class Smoothness:
+    """How smooth a target looks in a view, from ray casts (:func:`smoothness`): the share of
+    its lit pixels whose shading normal turns from the next pixel's, and how far its shading
+    normals lean from its triangles' (90th percentile, degrees)."""
+
+    curved: float
+    lean_deg: float
+
+    @property
+    def smooth_body(self) -> bool:
+        return self.curved >= CURVED_MIN and self.lean_deg <= LEAN_MAX_DEG
+
+
+def smoothness(renderer: Renderer, view: RenderedView) -> Smoothness | None:
+    """The :class:`Smoothness` of the pixels ``view``'s render lights (away from the outline),
+    from ray casts at up to GATE_PIXELS of them, evenly spread, and at their neighbours right
+    and below; None when fewer than MIN_PIXELS are lit."""
+    grey = to_grey(view.linear)
+    side = 2 * OUTLINE_MARGIN_PX + 1
+    lit = (grey > 0.05 * float(grey.max())).astype(np.uint8)
+    ys, xs = np.nonzero(cv2.erode(lit, np.ones((side, side), np.uint8)))
+    if len(xs) < MIN_PIXELS:
+        return None
+    pick = np.unique(np.linspace(0, len(xs) - 1, min(GATE_PIXELS, len(xs))).astype(int))
+    uv = np.column_stack([xs[pick], ys[pick]]).astype(np.float64)
+    k = len(uv)
+    cast = np.vstack([uv, uv + (1.0, 0.0), uv + (0.0, 1.0)])
+    n, ok = renderer.surface_normals(view.R, view.t, cast, view.level, view.window)
+    g, _ = renderer.surface_normals(view.R, view.t, uv, view.level, view.window, geometric=True)
+    n, ok = n.reshape(3, k, 3), ok.reshape(3, k)
+    cos_min = np.minimum(np.einsum("ij,ij->i", n[0], n[1]), np.einsum("ij,ij->i", n[0], n[2]))
+    seen = ok.all(axis=0)
+    if seen.sum() < MIN_PIXELS // 2:
+        return None
+    lean = np.degrees(np.arccos(np.clip(np.abs(np.einsum("ij,ij->i", n[0], g)), 0.0, 1.0)))
+    curved = float(np.mean(cos_min[seen] < np.cos(np.radians(TURN_MIN_DEG))))
+    return Smoothness(curved, float(np.percentile(lean[seen], 90)))
 
 
 def law_gain(w: float, angles: Angles) -> NDArray[np.float32]:
@@ -143,6 +201,11 @@ def fit_law(
             refined = trial(LAW_GRID[i] + 0.5 * (a - c) / (a - 2 * b + c) * step)
             best = refined if refined[0] < best[0] else best
     return best[1], misfits
+
+
+def reported_share(w: float | None) -> float:
+    """A session's fitted share as the result reports it: 0 when none was fitted or applied."""
+    return 0.0 if w is None or w < W_MIN else round(w, 3)
 
 
 def lambertised(reference_grey: FloatImage, w: float, angles: Angles) -> FloatImage:

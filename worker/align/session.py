@@ -129,6 +129,10 @@ class Session:
     #: (ladder side, centre px) of a window that holds the whole target (a tracked frame's):
     #: whole-image renders render only it, pasted onto the sky. None: render the whole image.
     sky_window: tuple[int, tuple[float, float]] | None = None
+    #: Whether the target is a smooth body (options.reflectance "auto"; None: not yet seen),
+    #: and the share of the reflectance law its first fit found (worker.align.reflectance).
+    smooth_body: bool | None = None
+    law_share: float | None = None
     _pyramid: dict[float, tuple[FloatImage, FloatImage]] = field(default_factory=dict)
     _renders_at_last_record: int = 0
     _described: dict[tuple[str, int, float, Window | None], Described] = field(default_factory=dict)

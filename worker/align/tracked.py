@@ -24,7 +24,7 @@ from numpy.typing import NDArray
 from worker.align.blur import relative_blur
 from worker.align.edges import detect_edge_points, normal_shift
 from worker.align.features import detect_corners, match_features, structure_whitening, track
-from worker.align.reflectance import W_MIN, fit_law, lambertised, law_angles
+from worker.align.reflectance import W_MIN, fit_law, lambertised, law_angles, smoothness
 from worker.align.session import RenderedView, Session
 from worker.engine.images import Box, srgb_decode, srgb_encode, to_grey
 from worker.engine.photometry import (
@@ -97,7 +97,7 @@ class TrackedFeatures:
         # does bends every shading feature of an untextured body (worker.align.reflectance).
         #: Its Lommel–Seeliger share, kept for the sets carried from this one (0: Lambert).
         self.law_w = 0.0
-        if session.options.reflectance == "fit":
+        if _law_wanted(session, view):
             ref_linear = self._fit_law(session, view, ref_linear)
         self.scale = contrast_scale(self._render_grey(view), box=work_box(view))
         ref_grey = srgb_encode(ref_linear)
@@ -172,12 +172,21 @@ class TrackedFeatures:
 
     def _fit_law(self, session: Session, view: RenderedView, ref_linear: Array) -> Array:
         """The reference as a Lambertian surface would show it, when another law explains it
-        better (worker.align.reflectance); its tone curve is then the one fitted with that law."""
+        better (worker.align.reflectance); its tone curve is then the one fitted with that law.
+        When the session's first fit finds Lambert (a share under W_MIN), later sets fit no
+        law; else each fits its own (keeping the first share and fitting only the tone curve
+        at later sets doubled the drift on the bench's asteroid under `regolith`)."""
+        if session.law_share is not None and session.law_share < W_MIN:
+            return ref_linear
         linear = _blurred(view.linear, self.blur_render)
         fit = fit_law(session.ref_image, linear, law_angles(session, view))
-        if fit is None or fit[0].w < W_MIN:
+        if fit is None:
             return ref_linear
         law = fit[0]
+        if session.law_share is None:
+            session.law_share = law.w
+        if law.w < W_MIN:
+            return ref_linear
         self.tone_curve, self.law_w = law.curve, law.w
         return law.reference
 
@@ -241,6 +250,20 @@ class TrackedFeatures:
 class _Anchor:
     ref8: NDArray[np.uint8]  # the normalised reference the corners were found in
     corners: Array  # (kc, 2) their positions there
+
+
+def _law_wanted(session: Session, view: RenderedView) -> bool:
+    """Whether to fit the reflectance law (options.reflectance; "auto": on a smooth body only,
+    decided once per session, at its first feature set that shows enough lit pixels)."""
+    mode = session.options.reflectance
+    if mode != "auto":
+        return mode == "fit"
+    if session.smooth_body is None:
+        seen = smoothness(session.renderer, view)
+        if seen is None:  # too few lit pixels here: decided at a later set
+            return False
+        session.smooth_body = seen.smooth_body
+    return session.smooth_body
 
 
 def work_box(view: RenderedView) -> Box | None:

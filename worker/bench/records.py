@@ -84,6 +84,7 @@ def outcome(result: EstimateResult, R_true: NDArray[np.float64]) -> dict[str, An
         "rms_residual_px": result.rms_residual_px,
         "alignment_score": result.alignment_score,
         "shading_normals": result.shading_normals,
+        "reflectance_share": result.reflectance_share,
         **_calibration(result),
         "timings_s": result.timings_s,
         "history": [
