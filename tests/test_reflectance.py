@@ -146,3 +146,19 @@ def test_the_asteroid_under_regolith_stays_at_the_truth(tmp_path: Path) -> None:
     # result.json says which law: the mix's share in the family is 0.54 (module docstring)
     assert 0.35 < records["default"]["reflectance_share"] < 0.75, records["default"]
     assert records["default:reflectance=lambert"]["reflectance_share"] == 0.0
+
+
+def test_a_tracked_frame_is_solved_again_only_when_its_law_gain_was_misplaced() -> None:
+    """The tracker's rule (worker.align.tracked.law_misplaced): only a set that divides by a
+    law, and only when the frame converged more than LAW_AGAIN_DEG from its prediction."""
+    from types import SimpleNamespace
+
+    from worker.align.tracked import LAW_AGAIN_DEG, law_misplaced
+    from worker.engine.posemath import rotvec_to_matrix
+
+    R_p = np.eye(3)
+    far = rotvec_to_matrix([0.0, np.radians(1.5 * LAW_AGAIN_DEG), 0.0])
+    near = rotvec_to_matrix([0.0, np.radians(0.5 * LAW_AGAIN_DEG), 0.0])
+    assert law_misplaced(SimpleNamespace(law_w=0.5), R_p, far)
+    assert not law_misplaced(SimpleNamespace(law_w=0.5), R_p, near)
+    assert not law_misplaced(SimpleNamespace(law_w=0.0), R_p, far)  # Lambert: nothing placed

@@ -38,7 +38,7 @@ from worker.align.learning import LearnedJacobian, learn_at_pose
 from worker.align.refine import StageState, run_lm_stage
 from worker.align.session import CancelCheck, Session
 from worker.align.skywindow import sky_window
-from worker.align.tracked import TrackedFeatures, work_box
+from worker.align.tracked import TrackedFeatures, law_misplaced, work_box
 from worker.engine.exceptions import ProxposeError, TooFewFeaturesError
 from worker.engine.images import FloatImage, check_size, to_grey
 from worker.engine.meshes import LoadedModel
@@ -257,6 +257,12 @@ class Tracker:
         session = self._session(memory.session, image, (R_p, t_p), truth)
         try:
             reason = self._lm(session, self._carry(memory, session))
+            if reason in CONVERGED and law_misplaced(memory.state.features, R_p, session.R):
+                again = self._session(memory.session, image, (session.R, session.t), truth)
+                reason = self._lm(again, self._carry(memory, again))
+                again.renders += session.renders
+                again.render_cost += session.render_cost
+                session = again
             # The last render referees the frame: after a linear step it is the step's start,
             # a fraction of a pixel away.
             current = session.current
