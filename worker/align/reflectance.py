@@ -27,8 +27,8 @@ poorly told apart from the faces' albedos. On the spacecraft of the robustness s
 normal turns from pixel to pixel almost everywhere it is lit, without leaning far from its
 triangles' normals. Measured on the robustness suite's views: Phobos and the bench's asteroid
 turn on 0.98-1.0 of their lit pixels and lean 2-9° (90th percentile); the demo satellite turns
-on 0.005-0.58 (flat panels); Aura shows too few lit pixels at half size to decide, 0.4-0.7 at
-full size; ISS turns on 0.96-1.0 but leans 41-47° (its vertex normals were averaged across its
+on 0.004-0.58 (flat panels); Aura shows too few lit pixels at half size to decide, 0.4-0.7 at
+full size; ISS turns on 0.96-1.0 but leans 40-47° (its vertex normals were averaged across its
 creases). ``"fit"`` fits the law on any target, ``"lambert"`` never.
 """
 
@@ -66,7 +66,7 @@ CURVED_MIN = 0.9
 TURN_MIN_DEG = 0.01
 GATE_PIXELS = 2000
 #: ... and its shading normals lean from its triangles' by at most this (90th percentile), °:
-#: a model whose vertex normals were averaged across its creases (ISS's lean 41-47°) turns
+#: a model whose vertex normals were averaged across its creases (ISS's lean 40-47°) turns
 #: everywhere too, but it is a spacecraft (Phobos 7-9°, the bench's asteroid 2-3°).
 LEAN_MAX_DEG = 20.0
 
