@@ -26,7 +26,7 @@ poorly told apart from the faces' albedos. On the spacecraft of the robustness s
 "auto"``) the law is fitted only on a smooth body (:func:`smoothness`): one whose shading
 normal turns from pixel to pixel almost everywhere it is lit, without leaning far from its
 triangles' normals. Measured on the robustness suite's views: Phobos and the bench's asteroid
-turn on 0.98-1.0 of their lit pixels and lean 2-9° (90th percentile); the demo satellite turns
+turn on 0.98-1.0 of their lit pixels and lean at most 9.3° (90th percentile); the demo satellite turns
 on 0.004-0.58 (flat panels); Aura shows too few lit pixels at half size to decide, 0.4-0.7 at
 full size; ISS turns on 0.96-1.0 but leans 40-47° (its vertex normals were averaged across its
 creases). ``"fit"`` fits the law on any target, ``"lambert"`` never.
@@ -67,7 +67,7 @@ TURN_MIN_DEG = 0.01
 GATE_PIXELS = 2000
 #: ... and its shading normals lean from its triangles' by at most this (90th percentile), °:
 #: a model whose vertex normals were averaged across its creases (ISS's lean 40-47°) turns
-#: everywhere too, but it is a spacecraft (Phobos 7-9°, the bench's asteroid 2-3°).
+#: everywhere too, but it is a spacecraft (Phobos up to 9.3°, the bench's asteroid 2.3-2.7°).
 LEAN_MAX_DEG = 20.0
 
 
