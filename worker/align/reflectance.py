@@ -26,10 +26,10 @@ poorly told apart from the faces' albedos. On the spacecraft of the robustness s
 "auto"``) the law is fitted only on a smooth body (:func:`smoothness`): one whose shading
 normal turns from pixel to pixel almost everywhere it is lit, without leaning far from its
 triangles' normals. Measured on the robustness suite's views: Phobos and the bench's asteroid
-turn on 0.98-1.0 of their lit pixels and lean at most 9.3° (90th percentile); the demo satellite turns
-on 0.004-0.58 (flat panels); Aura shows too few lit pixels at half size to decide, 0.4-0.7 at
-full size; ISS turns on 0.96-1.0 but leans 40-47° (its vertex normals were averaged across its
-creases). ``"fit"`` fits the law on any target, ``"lambert"`` never.
+turn on 0.98-1.0 of their lit pixels and lean at most 9.3° (90th percentile); the demo
+satellite turns on 0.004-0.58 (flat panels); Aura shows too few lit pixels at half size to
+decide, 0.4-0.7 at full size; ISS turns on 0.96-1.0 but leans 40-47° (its vertex normals were
+averaged across its creases). ``"fit"`` fits the law on any target, ``"lambert"`` never.
 """
 
 from __future__ import annotations
