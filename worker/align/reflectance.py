@@ -57,6 +57,8 @@ LAW_GRID = (0.0, 0.2, 0.4, 0.6, 0.8, 1.0)
 #: Smallest cosines of the pixels the law is fitted on, and their margin from the outline, px.
 MIN_COSINE = 0.1
 OUTLINE_MARGIN_PX = 3
+#: Least level of a lit pixel, a fraction of the render's brightest.
+LIT_FRACTION = 0.05
 #: Smoothing of both images before they are compared (noise, a pixel of misalignment), px.
 SMOOTH_PX = 1.5
 #: A smooth body: at least this share of its lit pixels has a shading normal that turns by more
@@ -129,10 +131,7 @@ def smoothness(renderer: Renderer, view: RenderedView) -> Smoothness | None:
     """The :class:`Smoothness` of the pixels ``view``'s render lights (away from the outline),
     from ray casts at up to GATE_PIXELS of them, evenly spread, and at their neighbours right
     and below; None when fewer than MIN_PIXELS are lit."""
-    grey = to_grey(view.linear)
-    side = 2 * OUTLINE_MARGIN_PX + 1
-    lit = (grey > 0.05 * float(grey.max())).astype(np.uint8)
-    ys, xs = np.nonzero(cv2.erode(lit, np.ones((side, side), np.uint8)))
+    ys, xs = np.nonzero(_inside(_lit(to_grey(view.linear))))
     if len(xs) < MIN_PIXELS:
         return None
     pick = np.unique(np.linspace(0, len(xs) - 1, min(GATE_PIXELS, len(xs))).astype(int))
@@ -158,11 +157,20 @@ def law_gain(w: float, angles: Angles) -> NDArray[np.float32]:
     return np.where(angles.hit & (angles.mu0 > 0), g, 1.0).astype(np.float32)
 
 
-def _law_pixels(render: Array, angles: Angles) -> NDArray[np.bool_] | None:
+def _lit(render: Array) -> NDArray[np.bool_]:
+    """The pixels of a render (linear grey) above LIT_FRACTION of its brightest."""
+    return render > LIT_FRACTION * float(render.max())
+
+
+def _inside(mask: NDArray[np.bool_]) -> NDArray[np.bool_]:
+    """``mask`` without its OUTLINE_MARGIN_PX nearest its outline."""
     side = 2 * OUTLINE_MARGIN_PX + 1
-    inside = cv2.erode(angles.hit.astype(np.uint8), np.ones((side, side), np.uint8)) > 0
-    sel = inside & (angles.mu0 > MIN_COSINE) & (angles.mu > MIN_COSINE)
-    sel &= render > 0.05 * float(render.max())
+    return cv2.erode(mask.astype(np.uint8), np.ones((side, side), np.uint8)) > 0
+
+
+def _law_pixels(render: Array, angles: Angles) -> NDArray[np.bool_] | None:
+    sel = _inside(angles.hit) & (angles.mu0 > MIN_COSINE) & (angles.mu > MIN_COSINE)
+    sel &= _lit(render)
     return sel if sel.sum() >= MIN_PIXELS else None
 
 
