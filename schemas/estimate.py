@@ -141,6 +141,12 @@ class EstimateResult(BaseModel):
         "compared under, as the first fit found it (options.reflectance 'fit', or 'auto' on a "
         "smooth body): 0 = the renders' Lambert law, no other fitted or none tried.",
     )
+    reflectance_roughness_deg: float = Field(
+        default=0.0,
+        description="Oren-Nayar roughness sigma (degrees) of that law, as the first fit found "
+        "it: 0 = none (a rough surface is brighter than Lambert's where the sun is behind "
+        "the camera and flatter towards the limb).",
+    )
     errors: Errors | None = None
     initial_errors: Errors | None = None
     timings_s: dict[str, float] = Field(

@@ -144,7 +144,8 @@ class EstimateOptions(BaseModel):
     reflectance: Literal["auto", "lambert", "fit"] = Field(
         default="auto",
         description="Reflectance law of the renders: 'lambert'; 'fit' = fit the share of a "
-        "Lommel-Seeliger law (regolith, which does not darken towards the limb) from the "
+        "Lommel-Seeliger law (regolith, which does not darken towards the limb) and an "
+        "Oren-Nayar roughness (a rough surface, brighter towards the sun's side) from the "
         "image when the features are made, and compare with the reference as a Lambertian "
         "surface would show it; 'auto' = 'fit' on a smooth body (a shading normal that turns "
         "from pixel to pixel almost everywhere it is lit and stays near its triangles' "

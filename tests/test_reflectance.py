@@ -1,5 +1,6 @@
 """The reflectance law fitted from the image (worker/align/reflectance.py): the share of
-Lommel–Seeliger recovered from a synthetic sphere, Lambert left alone, the surface normals the
+Lommel–Seeliger and Oren–Nayar's roughness recovered from a synthetic sphere, Lambert left
+alone, Oren–Nayar's geometric term against the bench's ray tracer, the surface normals the
 law reads from a real ray cast, the gate of reflectance "auto" (a smooth body against flat
 faces, real renders), and an estimate on the asteroid under regolith (real renders)."""
 
@@ -12,7 +13,16 @@ import numpy as np
 import pytest
 from test_bench import run_bench
 
-from worker.align.reflectance import W_MIN, Angles, fit_law, lambertised, law_gain
+from worker.align.reflectance import (
+    W_MIN,
+    Angles,
+    fit_law,
+    lambertised,
+    law_gain,
+    oren_nayar_term,
+    reported_law,
+    roughness_deg,
+)
 from worker.engine.images import srgb_decode, srgb_encode
 
 
@@ -26,8 +36,11 @@ def _sphere(size: int = 160) -> tuple[Angles, np.ndarray]:
     sun /= np.linalg.norm(sun)
     mu0 = np.where(hit, n @ sun, 0.0)
     mu = np.where(hit, n[..., 2], 0.0)
+    towards_camera = np.broadcast_to([0.0, 0.0, 1.0], (size * size, 3))
+    rough = oren_nayar_term(n.reshape(-1, 3), sun, towards_camera).reshape(mu.shape)
     light = np.where(hit & (mu0 > 0), 0.8 * mu0, 0.0) + 0.01 * hit
-    return Angles(mu0, mu, hit), np.repeat(light[..., None], 3, axis=2).astype(np.float32)
+    angles = Angles(mu0, mu, hit, np.where(hit, rough, 0.0))
+    return angles, np.repeat(light[..., None], 3, axis=2).astype(np.float32)
 
 
 def _camera(light: np.ndarray) -> np.ndarray:
@@ -44,8 +57,53 @@ def test_the_law_share_is_found_whatever_the_camera_response(w_true: float) -> N
     assert fit is not None
     law, misfits = fit
     assert law.w == pytest.approx(w_true, abs=0.06), misfits
+    assert law.c == 0.0  # no roughness read into it
     if w_true == 0.0:
-        assert law.w < W_MIN  # a Lambertian reference is left as it is
+        assert law.w < W_MIN and law.lambert  # a Lambertian reference is left as it is
+
+
+@pytest.mark.parametrize("c_true", [0.3, 0.6])
+def test_a_rough_surface_is_found_as_one(c_true: float) -> None:
+    """An Oren–Nayar reference (c = B/A: σ ≈ 20° and 50°): the share alone would take w ≈
+    0.3-0.5 for it (the two laws trade off); the joint fit finds the roughness, and its gain
+    is closer to the true one than the share's alone."""
+    angles, render = _sphere()
+    truth = law_gain(0.0, angles, c_true)
+    fit = fit_law(_camera(render * truth[..., None]), render, angles)
+    assert fit is not None
+    law = fit[0]
+    assert law.c == pytest.approx(c_true, abs=0.12) and law.w < 0.15, law
+    lit = angles.hit & (angles.mu0 > 0.1) & (angles.mu > 0.1)
+
+    def spread(g: np.ndarray) -> float:  # of the log ratio to the truth (a scale is free)
+        return float(np.std(np.log(g[lit] / truth[lit])))
+
+    share_alone = min(spread(law_gain(w, angles)) for w in np.linspace(0.0, 1.0, 51))
+    assert spread(law_gain(law.w, angles, law.c)) < 0.7 * share_alone
+    assert reported_law(law.shape)[1] == pytest.approx(roughness_deg(law.c), abs=0.05)
+
+
+def test_the_oren_nayar_term_is_the_bench_ray_tracers() -> None:
+    """Oren–Nayar's brightness over Lambert's is A + B·X; X from the law's ray casts matches
+    the bench's ray tracer (worker.bench.raytrace) on random normals, sun and view."""
+    from worker.bench.raytrace import Physics, _reflectance
+
+    rng = np.random.default_rng(3)
+    n = rng.normal(size=(400, 3))
+    n /= np.linalg.norm(n, axis=1, keepdims=True)
+    V = rng.normal(size=(400, 3))
+    V /= np.linalg.norm(V, axis=1, keepdims=True)
+    V = np.where((np.einsum("ij,ij->i", n, V) < 0.2)[:, None], -V, V)
+    L = np.array([0.3, 0.5, 0.81]) / np.linalg.norm([0.3, 0.5, 0.81])
+    phys = Physics(brdf="oren", roughness_deg=30.0)
+    s2 = np.radians(30.0) ** 2
+    A, B = 1.0 - 0.5 * s2 / (s2 + 0.33), 0.45 * s2 / (s2 + 0.09)
+    mu0 = n @ L
+    ok = (mu0 > 0.05) & (np.einsum("ij,ij->i", n, V) > 0.05)
+    ratio = _reflectance(phys, n, L, V)[ok] * np.pi / mu0[ok]
+    assert ratio == pytest.approx(A + B * oren_nayar_term(n, L, V)[ok], rel=1e-6)
+    assert roughness_deg(B / A) == pytest.approx(30.0, abs=0.2)
+    assert roughness_deg(0.01) == 0.0
 
 
 def test_a_lambertised_reference_shows_the_lambert_render() -> None:
@@ -145,6 +203,7 @@ def test_the_asteroid_under_regolith_stays_at_the_truth(tmp_path: Path) -> None:
     assert drift["default"] < 0.5 * drift["default:reflectance=lambert"], drift
     # result.json says which law: the mix's share in the family is 0.54 (module docstring)
     assert 0.35 < records["default"]["reflectance_share"] < 0.75, records["default"]
+    assert records["default"]["reflectance_roughness_deg"] == 0.0  # not read as a rough one
     assert records["default:reflectance=lambert"]["reflectance_share"] == 0.0
 
 
@@ -161,4 +220,5 @@ def test_a_tracked_frame_is_solved_again_only_when_its_law_gain_was_misplaced() 
     near = rotvec_to_matrix([0.0, np.radians(0.5 * LAW_AGAIN_DEG), 0.0])
     assert law_misplaced(SimpleNamespace(law_w=0.5), R_p, far)
     assert not law_misplaced(SimpleNamespace(law_w=0.5), R_p, near)
-    assert not law_misplaced(SimpleNamespace(law_w=0.0), R_p, far)  # Lambert: nothing placed
+    assert law_misplaced(SimpleNamespace(law_w=0.0, law_c=0.4), R_p, far)  # rough only
+    assert not law_misplaced(SimpleNamespace(law_w=0.0, law_c=0.0), R_p, far)  # Lambert

@@ -88,6 +88,14 @@ function showErrors(result) {
   ]);
 }
 
+// The fitted reflectance law: a Lommel–Seeliger share in Lambert, an Oren–Nayar roughness, or both.
+function lawText(result) {
+  const share = `${fixed(result.reflectance_share, 2)} Lommel–Seeliger`;
+  if (!result.reflectance_roughness_deg) return `Lambert + ${share}`;
+  const rough = `Oren–Nayar, roughness σ ${fixed(result.reflectance_roughness_deg, 1)}°`;
+  return result.reflectance_share ? `${rough}, with ${share}` : rough;
+}
+
 function showRunFacts(result) {
   const facts = [
     ["Iterations", result.iterations], ["Renders", result.renders],
@@ -98,8 +106,8 @@ function showRunFacts(result) {
     ...(result.sun_direction
       ? [["Sun used (camera frame)", `[${result.sun_direction.map((v) => fixed(v, 4)).join(", ")}], ${fixed(result.sun_tilt_deg, 2)}° from the request's`]]
       : []),
-    ...(result.reflectance_share
-      ? [["Reflectance law", `Lambert + ${fixed(result.reflectance_share, 2)} Lommel–Seeliger (fitted from the image)`]]
+    ...(result.reflectance_share || result.reflectance_roughness_deg
+      ? [["Reflectance law", `${lawText(result)} (fitted from the image)`]]
       : []),
     ["Mitsuba variant", result.variant],
     ...Object.entries(result.timings_s).map(([k, v]) => [`Time in ${k}`, seconds(v)]),

@@ -29,7 +29,7 @@ from worker.align.learning import apparent_radius_px
 from worker.align.lm import covariance
 from worker.align.pyramid import LevelPlan, level_spp, plan_levels
 from worker.align.refine import Outcome, run_lm_stage
-from worker.align.reflectance import reported_share
+from worker.align.reflectance import reported_law
 from worker.align.renderers import get_renderer, lighting_spec, texture_level
 from worker.align.session import CancelCheck, LinearFit, ProgressCallback, RenderedView, Session
 from worker.align.shading import RendererFor, choose_shading
@@ -389,7 +389,8 @@ def _result(
         sun_direction=[float(x) for x in sun],
         sun_tilt_deg=float(np.degrees(np.arccos(np.clip(sun @ asked, -1.0, 1.0)))),
         shading_normals=session.renderer.shading,  # type: ignore[arg-type]
-        reflectance_share=reported_share(session.law_share),
+        reflectance_share=reported_law(session.law)[0],
+        reflectance_roughness_deg=reported_law(session.law)[1],
         errors=errors_between(truth, session.R, session.t),
         initial_errors=errors_between(truth, R0, t0),
         timings_s={k: round(v, 4) for k, v in session.timings_s.items()},

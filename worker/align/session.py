@@ -119,10 +119,9 @@ class Session:
     perturbation_scales: dict[float, float] = field(default_factory=dict)
     #: Samples per pixel of the main renders of the stage in progress (None: options.spp).
     stage_spp: int | None = None
-    #: The window's ladder side and centre (full-resolution px): the levels the renderer has
-    #: that window for then work on it instead of the whole image (worker.align.pyramid), and
-    #: the centre's offset from the image of the model's centre (it follows the pose).
-    #: None: the whole image.
+    #: The window's ladder side and centre (full-resolution px; None: the whole image): the
+    #: levels the renderer has that window for then work on it instead of the whole image
+    #: (worker.align.pyramid), and the centre's offset from the image of the model's centre.
     window_side: int | None = None
     window_centre: tuple[float, float] = (0.0, 0.0)
     window_offset: tuple[float, float] = (0.0, 0.0)
@@ -130,9 +129,9 @@ class Session:
     #: whole-image renders render only it, pasted onto the sky. None: render the whole image.
     sky_window: tuple[int, tuple[float, float]] | None = None
     #: Whether the target is a smooth body (options.reflectance "auto"; None: not yet seen),
-    #: and the share of the reflectance law its first fit found (worker.align.reflectance).
+    #: and the law its first fit found: (w, c) (worker.align.reflectance.Law).
     smooth_body: bool | None = None
-    law_share: float | None = None
+    law: tuple[float, float] | None = None
     _pyramid: dict[float, tuple[FloatImage, FloatImage]] = field(default_factory=dict)
     _renders_at_last_record: int = 0
     _described: dict[tuple[str, int, float, Window | None], Described] = field(default_factory=dict)

@@ -24,7 +24,7 @@ from numpy.typing import NDArray
 from worker.align.blur import relative_blur
 from worker.align.edges import detect_edge_points, normal_shift
 from worker.align.features import detect_corners, match_features, structure_whitening, track
-from worker.align.reflectance import W_MIN, fit_law, lambertised, law_angles, smoothness
+from worker.align.reflectance import fit_law, is_lambert, lambertised, law_angles, smoothness
 from worker.align.session import RenderedView, Session
 from worker.engine.images import Box, srgb_decode, srgb_encode, to_grey
 from worker.engine.metrics import rotation_error_deg
@@ -99,8 +99,9 @@ class TrackedFeatures:
             ref_linear = srgb_decode(on_render_scale(session.ref_image, self.tone_curve))
         # The reflectance law: a regolith that does not darken towards the limb as Lambert
         # does bends every shading feature of an untextured body (worker.align.reflectance).
-        #: Its Lommel–Seeliger share, kept for the sets carried from this one (0: Lambert).
-        self.law_w = 0.0
+        #: Its Lommel–Seeliger share and Oren–Nayar c, kept for the sets carried from this one
+        #: (both 0: Lambert).
+        self.law_w, self.law_c = 0.0, 0.0
         if _law_wanted(session, view):
             ref_linear = self._fit_law(session, view, ref_linear)
         self.scale = contrast_scale(self._render_grey(view), box=work_box(view))
@@ -150,8 +151,8 @@ class TrackedFeatures:
         else:
             part = on_render_scale(box.of(ref_image), self.tone_curve)
             ref_grey = box.paste(part, view.grey.shape)
-        if self.law_w > 0:
-            ref_grey = lambertised(ref_grey, self.law_w, law_angles(session, view))
+        if self.law_w > 0 or self.law_c > 0:
+            ref_grey = lambertised(ref_grey, self.law_w, law_angles(session, view), self.law_c)
         new.scale = contrast_scale(self._render_grey(view), box=box)
         new.ref_f = local_normalise_f(ref_grey, new.scale, box=box)
         new.ref8 = normalised_to_u8(new.ref_f, box)
@@ -177,21 +178,21 @@ class TrackedFeatures:
     def _fit_law(self, session: Session, view: RenderedView, ref_linear: Array) -> Array:
         """The reference as a Lambertian surface would show it, when another law explains it
         better (worker.align.reflectance); its tone curve is then the one fitted with that law.
-        When the session's first fit finds Lambert (a share under W_MIN), later sets fit no
+        When the session's first fit finds Lambert (neither part applied), later sets fit no
         law; else each fits its own (keeping the first share and fitting only the tone curve
         at later sets doubled the drift on the bench's asteroid under `regolith`)."""
-        if session.law_share is not None and session.law_share < W_MIN:
+        if session.law is not None and is_lambert(session.law):
             return ref_linear
         linear = _blurred(view.linear, self.blur_render)
         fit = fit_law(session.ref_image, linear, law_angles(session, view))
         if fit is None:
             return ref_linear
         law = fit[0]
-        if session.law_share is None:
-            session.law_share = law.w
-        if law.w < W_MIN:
+        if session.law is None:
+            session.law = law.shape
+        if law.lambert:
             return ref_linear
-        self.tone_curve, self.law_w = law.curve, law.w
+        self.tone_curve, self.law_w, self.law_c = law.curve, law.w, law.c
         return law.reference
 
     def _render_grey(self, view: RenderedView) -> Array:
@@ -277,7 +278,7 @@ def law_misplaced(features: object, R_predicted: Array, R: Array) -> bool:
     where it ended. Measured on the bench's asteroid under `regolith` (12 frames, approach and
     tumble): the first tracked frame, predicted without a velocity ~0.8° off, ended 0.124° and
     0.092° off, solved again 0.043° and 0.031°."""
-    if getattr(features, "law_w", 0.0) <= 0.0:
+    if getattr(features, "law_w", 0.0) <= 0.0 and getattr(features, "law_c", 0.0) <= 0.0:
         return False
     return rotation_error_deg(R_predicted, R) > LAW_AGAIN_DEG
 

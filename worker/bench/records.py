@@ -85,6 +85,7 @@ def outcome(result: EstimateResult, R_true: NDArray[np.float64]) -> dict[str, An
         "alignment_score": result.alignment_score,
         "shading_normals": result.shading_normals,
         "reflectance_share": result.reflectance_share,
+        "reflectance_roughness_deg": result.reflectance_roughness_deg,
         **_calibration(result),
         "timings_s": result.timings_s,
         "history": [
