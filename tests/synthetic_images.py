@@ -67,6 +67,19 @@ def blobs(side: int = 128, shift: tuple[float, float] = (0.0, 0.0), seed: int = 
     return (img / img.max()).astype(np.float32)
 
 
+def discs(side: int = 192, seed: int = 0, width_px: float = 0.3) -> Image:
+    """Grey image (side, side) of 7 bright discs of 10–25 px radius with smooth edges on black:
+    edges in every direction."""
+    rng = np.random.default_rng(seed)
+    y, x = np.mgrid[0:side, 0:side].astype(np.float64)
+    img = np.zeros((side, side))
+    for _ in range(7):
+        cx, cy = rng.uniform(30, side - 30, 2)
+        radius, value = rng.uniform(10, 25), rng.uniform(0.3, 1.0)
+        img = np.maximum(img, value * _step(radius - np.hypot(x - cx, y - cy), width_px))
+    return img.astype(np.float32)
+
+
 def u8(img: Image) -> NDArray[np.uint8]:
     return (np.clip(img, 0.0, 1.0) * 255.0 + 0.5).astype(np.uint8)
 

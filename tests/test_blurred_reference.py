@@ -58,7 +58,7 @@ def _corner_misfit(renderer: Renderer, R: np.ndarray, t: np.ndarray) -> tuple[fl
     out = radial / np.linalg.norm(radial, axis=1, keepdims=True)
     assert len(d) >= 50
     outward = float(np.einsum("ki,ki->k", d, out).mean())
-    return feats.blur_render, float(np.median(np.hypot(*d.T))), outward
+    return feats.blur.sigma_px, float(np.median(np.hypot(*d.T))), outward
 
 
 @pytest.mark.shared

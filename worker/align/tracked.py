@@ -21,7 +21,7 @@ import cv2
 import numpy as np
 from numpy.typing import NDArray
 
-from worker.align.blur import relative_blur
+from worker.align.blur import measure_blur
 from worker.align.edges import detect_edge_points, normal_shift
 from worker.align.features import detect_corners, match_features, structure_whitening, track
 from worker.align.reflectance import fit_law, is_lambert, lambertised, law_angles, smoothness
@@ -52,8 +52,6 @@ MEASURE_MAX_LEFT_PX = 0.25
 MATCH_POOL = 200
 #: Edge points used at most, per corner allowed.
 EDGES_PER_CORNER = 3
-#: Relative blur (Gaussian σ, px) below which the render is left as it is.
-BLUR_MIN_PX = 0.05
 #: A tracked frame whose law gain was placed this far (°) from where it converged is solved
 #: again (:func:`law_misplaced`).
 LAW_AGAIN_DEG = 0.2
@@ -86,16 +84,14 @@ class TrackedFeatures:
         ref_linear = srgb_decode(on_render_scale(session.ref_image, self.tone_curve))
         # Equal sharpness too: a corner blurred differently in the two images sits elsewhere.
         # Blur acts on light, so it is measured and applied in linear units, then encoded.
-        self.blur_render = relative_blur(ref_linear, to_grey(view.linear))
-        if self.blur_render > BLUR_MIN_PX:
+        self.blur = measure_blur(ref_linear, to_grey(view.linear))
+        if self.blur.active:
             # The curve again, against the render at the reference's sharpness: against the
             # sharp one, the light a softer reference spreads into the render's flat dark parts
             # bent the curve's foot (dark levels mapped 10-15 % too low: a gamma) and moved
             # corners outwards (0.055 px at σ = 1 px; Aura started at the truth ended up to 0.49°
             # off, 0.069° with the refit).
-            self.tone_curve = reference_tone_curve(
-                session.ref_image, _blurred(view.linear, self.blur_render)
-            )
+            self.tone_curve = reference_tone_curve(session.ref_image, self.blur.apply(view.linear))
             ref_linear = srgb_decode(on_render_scale(session.ref_image, self.tone_curve))
         # The reflectance law: a regolith that does not darken towards the limb as Lambert
         # does bends every shading feature of an untextured body (worker.align.reflectance).
@@ -183,7 +179,7 @@ class TrackedFeatures:
         at later sets doubled the drift on the bench's asteroid under `regolith`)."""
         if session.law is not None and is_lambert(session.law):
             return ref_linear
-        linear = _blurred(view.linear, self.blur_render)
+        linear = self.blur.apply(view.linear)
         fit = fit_law(session.ref_image, linear, law_angles(session, view))
         if fit is None:
             return ref_linear
@@ -197,12 +193,12 @@ class TrackedFeatures:
 
     def _render_grey(self, view: RenderedView) -> Array:
         """The render's grey at the reference's sharpness (kept for the last view)."""
-        if self.blur_render <= BLUR_MIN_PX:
+        if not self.blur.active:
             return view.grey
         if self._grey is None or self._grey[0] is not view:
             box = work_box(view)
             linear = view.linear if box is None else box.of(view.linear)
-            grey = srgb_encode(_blurred(to_grey(linear), self.blur_render))
+            grey = srgb_encode(self.blur.apply(to_grey(linear)))
             self._grey = (view, grey if box is None else box.paste(grey, view.grey.shape))
         return self._grey[1]
 
@@ -287,10 +283,6 @@ def work_box(view: RenderedView) -> Box | None:
     """The part of ``view``'s image that processing it needs: its sky box grown by the blurs'
     reach (outside it the render and every blur of it are sky); None: all of it."""
     return None if view.sky_box is None else view.sky_box.grown(BLUR_REACH_PX, view.grey.shape)
-
-
-def _blurred(img: Array, sigma_px: float) -> Array:
-    return cv2.GaussianBlur(img, (0, 0), sigma_px) if sigma_px > BLUR_MIN_PX else img
 
 
 class MatchedFeatures:
