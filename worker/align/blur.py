@@ -26,7 +26,7 @@ single σ (:class:`Blur`).
 
 from __future__ import annotations
 
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 
 import cv2
@@ -150,7 +150,7 @@ def _measure(reference_linear: FloatImage, render_linear: FloatImage, streaks: b
     if per.shape[1] < MIN_EDGES:
         return Blur()
     cost = _trimmed(per)
-    best = Blur(_vertex(cost, int(np.argmin(cost)), BLUR_GRID_PX))
+    best = Blur(grid_vertex(cost, int(np.argmin(cost)), BLUR_GRID_PX))
     if not streaks or best.sigma_px < STREAK_SEARCH_PX:
         return best
 
@@ -179,7 +179,7 @@ def _streak_guess(per: Array, normals: Array) -> Blur | None:
             curve = _trimmed(per[:, bins == b])
             centre = (b + 0.5) * np.pi / STREAK_ANGLES
             rows.append([1.0, np.cos(2 * centre), np.sin(2 * centre)])
-            var.append(_vertex(curve, int(np.argmin(curve)), BLUR_GRID_PX) ** 2)
+            var.append(grid_vertex(curve, int(np.argmin(curve)), BLUR_GRID_PX) ** 2)
     if len(rows) < 4:
         return None
     alpha, beta, gamma = np.linalg.lstsq(np.array(rows), np.array(var), rcond=None)[0]
@@ -219,13 +219,12 @@ def _trimmed(per: Array) -> Array:
     return np.sort(per, axis=1)[:, :m].mean(axis=1)
 
 
-def _vertex(cost: Array, i: int, grid: Array) -> float:
-    """The grid value at ``i`` moved to the vertex of the parabola through it and its
-    neighbours (when they bracket a minimum), within the grid."""
-    k = int(i)
-    value = float(grid[k])
-    if 0 < k < len(cost) - 1:
-        c0, c1, c2 = cost[k - 1 : k + 2]
+def grid_vertex(values: Sequence[float] | Array, i: int, grid: Sequence[float] | Array) -> float:
+    """The point ``grid[i]`` of an evenly spaced grid moved to the vertex of the parabola through
+    its value and its neighbours' (when they bracket a minimum), within the grid."""
+    value = float(grid[i])
+    if 0 < i < len(values) - 1:
+        c0, c1, c2 = values[i - 1 : i + 2]
         curvature = c0 - 2.0 * c1 + c2
         if curvature > 0:
             value += 0.5 * (c0 - c2) / curvature * float(grid[1] - grid[0])

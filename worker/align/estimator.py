@@ -371,6 +371,7 @@ def _result(
         rms = float(np.sqrt(np.sum(np.repeat(w, 2) * r**2) / max(np.sum(w), 1e-12) / 2))
     sun = np.asarray(session.renderer.lighting.sun_direction, dtype=np.float64)
     asked = np.asarray(session.requested_lighting.sun_direction, dtype=np.float64)
+    law = reported_law(session.law)  # (Lommel–Seeliger share, Oren–Nayar roughness σ)
     return EstimateResult(
         pose=pose_to_schema(session.R, session.t),
         initial_pose=pose_to_schema(R0, t0),
@@ -389,8 +390,8 @@ def _result(
         sun_direction=[float(x) for x in sun],
         sun_tilt_deg=float(np.degrees(np.arccos(np.clip(sun @ asked, -1.0, 1.0)))),
         shading_normals=session.renderer.shading,  # type: ignore[arg-type]
-        reflectance_share=reported_law(session.law)[0],
-        reflectance_roughness_deg=reported_law(session.law)[1],
+        reflectance_share=law[0],
+        reflectance_roughness_deg=law[1],
         errors=errors_between(truth, session.R, session.t),
         initial_errors=errors_between(truth, R0, t0),
         timings_s={k: round(v, 4) for k, v in session.timings_s.items()},

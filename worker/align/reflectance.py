@@ -44,6 +44,7 @@ import cv2
 import numpy as np
 from numpy.typing import NDArray
 
+from worker.align.blur import grid_vertex
 from worker.align.session import RenderedView, Session
 from worker.engine.images import FloatImage, srgb_decode, srgb_encode, to_grey
 from worker.engine.photometry import ToneCurve, on_render_scale, reference_tone_curve
@@ -58,12 +59,12 @@ GAIN_MAX = 4.0
 MIN_PIXELS = 500
 #: Shares tried before the parabola through the best and its neighbours.
 LAW_GRID = (0.0, 0.2, 0.4, 0.6, 0.8, 1.0)
-#: Oren–Nayar's c = B / A tried likewise (0.37 at a roughness σ of 25°, 0.9 as σ → ∞), and the
-#: smallest applied; the joint refinement's steps at most, its difference step and the step
-#: that ends it.
+#: Oren–Nayar's c = B / A tried alone (0.37 at a roughness σ of 25°, 0.9 as σ → ∞; the last
+#: also bounds the joint fit), and the smallest applied.
 ROUGH_GRID = (0.3, 0.6, 0.9)
 C_MIN = 0.05
-#: The joint law is kept only when its misfit is under this share of the share's alone.
+#: The joint law is kept only when its misfit is under this share of the share's alone; the
+#: joint refinement's steps at most, its difference step and the step that ends it.
 JOINT_GAIN = 0.5
 JOINT_STEPS = 4
 JOINT_H = 0.05
@@ -286,13 +287,8 @@ def _search(trial: Callable[[float], _Trial], grid: tuple[float, ...]) -> tuple[
     trials = [trial(x) for x in grid]
     misfits = [t.misfit for t in trials]
     i = int(np.argmin(misfits))
-    best = trials[i]
-    if 0 < i < len(grid) - 1:
-        a, b, c = misfits[i - 1 : i + 2]
-        if a - 2 * b + c > 0:
-            refined = trial(grid[i] + 0.5 * (a - c) / (a - 2 * b + c) * (grid[1] - grid[0]))
-            best = refined if refined.misfit < best.misfit else best
-    return best.law, misfits
+    refined = trial(grid_vertex(misfits, i, grid))  # the grid's own trial when no parabola
+    return (refined if refined.misfit < trials[i].misfit else trials[i]).law, misfits
 
 
 def _joint(trial: Callable[[float, float], _Trial], law: Law) -> Law:
