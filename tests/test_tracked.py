@@ -7,10 +7,12 @@ from __future__ import annotations
 
 from types import SimpleNamespace
 
+import cv2
 import numpy as np
-from synthetic_images import blobs, rectangles
+from synthetic_images import blobs, discs, rectangles
 
 from schemas.options import EstimateOptions
+from worker.align.blur import streak_kernel
 from worker.align.session import RenderedView
 from worker.align.tracked import MatchedFeatures, TrackedFeatures
 from worker.engine.images import Box, on_sky
@@ -132,3 +134,34 @@ def test_a_window_pasted_on_the_sky_is_processed_only_around_itself() -> None:
     assert len(whole[0]) >= 20 and whole[4].mean() > 0.8
     for a, b in zip(whole, boxed, strict=True):
         np.testing.assert_allclose(b, a, atol=2e-3)
+
+
+def test_a_set_carried_into_a_frame_measures_its_streak_again() -> None:
+    """Motion blur follows each exposure's motion: a set that found a streak measures it again
+    in every frame it is carried into; a Gaussian blur (defocus) stays the set's."""
+    linear = discs(seed=3).astype(np.float32)
+    render = RenderedView(np.eye(3), np.zeros(3), linear, render_to_grey(linear))
+    still = np.zeros((1, 2))
+
+    def frame(blurred: np.ndarray) -> SimpleNamespace:
+        reference = (0.8 * blurred) ** 0.5
+        options = EstimateOptions().resolved()
+        return SimpleNamespace(ref_image=reference, ref_grey=reference, options=options,
+                               smooth_body=False)  # fmt: skip
+
+    def streak(angle_deg: float) -> SimpleNamespace:
+        return frame(cv2.filter2D(linear, -1, streak_kernel(2.0, np.radians(angle_deg))))
+
+    def angle_deg(feats: TrackedFeatures) -> float:
+        return float(np.degrees(feats.blur.angle_rad)) % 180.0
+
+    feats = TrackedFeatures(streak(20.0), render)  # type: ignore[arg-type]
+    assert feats.smeared and abs(angle_deg(feats) - 20.0) < 12.0, feats.blur
+    carried, _ = feats.carried(streak(110.0), render, np.repeat(still, len(feats.x_ref), 0))  # type: ignore[arg-type]
+    assert carried.smeared and abs(angle_deg(carried) - 110.0) < 12.0, carried.blur
+    assert abs(angle_deg(feats) - 20.0) < 12.0  # the set carried from keeps its own
+
+    defocus = TrackedFeatures(frame(cv2.GaussianBlur(linear, (0, 0), 1.0)), render)  # type: ignore[arg-type]
+    assert not defocus.smeared and defocus.blur.sigma_px > 0.7, defocus.blur
+    moved, _ = defocus.carried(streak(110.0), render, np.repeat(still, len(defocus.x_ref), 0))  # type: ignore[arg-type]
+    assert moved.blur is defocus.blur

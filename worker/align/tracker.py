@@ -4,9 +4,10 @@ The first frame is a full estimate from the request's initial pose. Every later 
 from a constant-velocity prediction and keeps the previous frame's features (each tracked from
 the previous image into the new one, starting where the learned Jacobian predicts it moved),
 their learned Jacobian rows (Broyden-updated by every accepted step), the fitted sun, the tone
-curve and the sharpness match; so a frame costs a render at the prediction, and a trial only
-when the LM's step from there moves some feature by LINEAR_STEP_PX or more (a smaller step is
-taken on the linear model: its trial would only re-measure the features), not a full estimate.
+curve and the sharpness match (motion blur's streak measured again); so a frame costs a render
+at the prediction, and a trial only when the LM's step from there moves some feature by
+LINEAR_STEP_PX or more (a smaller step is taken on the linear model: its trial would only
+re-measure the features), not a full estimate.
 The learned-Jacobian LM stays the core: the rows are the paper's, learned from perturbed
 renders, and learned again (with the features made afresh) once the attitude has turned
 RELEARN_ROTATION_DEG from where they were learned or too few features are left. A frame that
@@ -357,6 +358,8 @@ class Tracker:
             self._memory = _Memory(st, memory.learned_pose, memory.learned_features, session)
             return False
         fresh = self._fresh(session)
+        # Once frames showed motion blur, later ones measure it again (TrackedFeatures.smeared).
+        fresh.features.smeared |= st.features.smeared  # type: ignore[union-attr]
         if session.options.fit_sun:
             session.options = session.options.model_copy(
                 update={"max_iterations": len(session.history) + FRAME_ITERATIONS}
