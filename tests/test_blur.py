@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from tests.synthetic_images import discs, rectangles
-from worker.align.blur import Blur, measure_blur, relative_blur, streak_kernel
+from worker.align.blur import Blur, blur_change_px, measure_blur, relative_blur, streak_kernel
 
 
 def _softer(linear: np.ndarray, sigma_px: float) -> np.ndarray:
@@ -71,3 +71,14 @@ def test_a_streak_kernel_is_a_centred_line_of_unit_sum() -> None:
     assert k[centre].sum() == pytest.approx(1.0)  # horizontal: all on the centre row
     assert k[centre, centre - 1] > 0 and k[centre, centre + 1] > 0
     assert k[centre, :centre].sum() == pytest.approx(k[centre, centre + 1 :].sum())
+
+
+def test_blur_change_is_the_largest_difference_across_an_edge() -> None:
+    """How far apart two blurs are: their spreads across an edge, compared over its direction."""
+    assert blur_change_px(Blur(1.0), Blur(1.0)) == 0.0
+    assert blur_change_px(Blur(1.0), Blur(1.2)) == pytest.approx(0.2)
+    a, b = Blur(0.2, 1.5, 0.3), Blur(0.2, 1.5, 0.3 + np.pi)  # a streak has no sign
+    assert blur_change_px(a, b) == pytest.approx(0.0, abs=1e-9)
+    turned = blur_change_px(a, Blur(0.2, 1.5, 0.3 + np.pi / 2))
+    # across the streak its spread is √(σ² + L²/12), along it σ
+    assert turned == pytest.approx(np.sqrt(0.04 + 1.5**2 / 12) - 0.2, rel=0.1)

@@ -136,12 +136,12 @@ def test_a_window_pasted_on_the_sky_is_processed_only_around_itself() -> None:
         np.testing.assert_allclose(b, a, atol=2e-3)
 
 
-def test_a_set_carried_into_a_frame_measures_its_streak_again() -> None:
+def test_a_set_carried_into_a_frame_measures_a_changing_blur_again() -> None:
     """Motion blur follows each exposure's motion: a set that found a streak measures it again
-    in every frame it is carried into; a Gaussian blur (defocus) stays the set's."""
+    in every frame it is carried into; one with another blur measures it in the first, and
+    in the later ones only if it changed there (a defocus stays with the camera)."""
     linear = discs(seed=3).astype(np.float32)
     render = RenderedView(np.eye(3), np.zeros(3), linear, render_to_grey(linear))
-    still = np.zeros((1, 2))
 
     def frame(blurred: np.ndarray) -> SimpleNamespace:
         reference = (0.8 * blurred) ** 0.5
@@ -152,16 +152,26 @@ def test_a_set_carried_into_a_frame_measures_its_streak_again() -> None:
     def streak(angle_deg: float) -> SimpleNamespace:
         return frame(cv2.filter2D(linear, -1, streak_kernel(2.0, np.radians(angle_deg))))
 
+    def defocus(sigma_px: float) -> SimpleNamespace:
+        return frame(cv2.GaussianBlur(linear, (0, 0), sigma_px))
+
     def angle_deg(feats: TrackedFeatures) -> float:
         return float(np.degrees(feats.blur.angle_rad)) % 180.0
 
+    def carry(feats: TrackedFeatures, into: SimpleNamespace) -> TrackedFeatures:
+        still = np.zeros((len(feats.x_ref), 2))
+        return feats.carried(into, render, still)[0]  # type: ignore[arg-type]
+
     feats = TrackedFeatures(streak(20.0), render)  # type: ignore[arg-type]
     assert feats.smeared and abs(angle_deg(feats) - 20.0) < 12.0, feats.blur
-    carried, _ = feats.carried(streak(110.0), render, np.repeat(still, len(feats.x_ref), 0))  # type: ignore[arg-type]
+    carried = carry(feats, streak(110.0))
     assert carried.smeared and abs(angle_deg(carried) - 110.0) < 12.0, carried.blur
     assert abs(angle_deg(feats) - 20.0) < 12.0  # the set carried from keeps its own
 
-    defocus = TrackedFeatures(frame(cv2.GaussianBlur(linear, (0, 0), 1.0)), render)  # type: ignore[arg-type]
-    assert not defocus.smeared and defocus.blur.sigma_px > 0.7, defocus.blur
-    moved, _ = defocus.carried(streak(110.0), render, np.repeat(still, len(defocus.x_ref), 0))  # type: ignore[arg-type]
-    assert moved.blur is defocus.blur
+    lens = TrackedFeatures(defocus(1.0), render)  # type: ignore[arg-type]
+    assert lens.smeared is None and lens.blur.sigma_px > 0.7, lens.blur
+    same = carry(lens, defocus(1.0))
+    assert same.smeared is False and same.blur is lens.blur
+    assert carry(same, streak(110.0)).blur is lens.blur  # no longer measured
+    changed = carry(lens, defocus(0.4))
+    assert changed.smeared and changed.blur.sigma_px < 0.6, changed.blur

@@ -84,6 +84,18 @@ class Blur:
         return img
 
 
+def blur_change_px(a: Blur, b: Blur) -> float:
+    """How far apart two blurs are: the largest difference (px) of their spreads across an
+    edge, over the edge's direction φ (the spread of σ and a streak of L along θ across an edge
+    of normal φ: √(σ² + L²/24 (1 + cos 2(φ − θ))), as in :func:`_streak_guess`)."""
+    phi = np.linspace(0.0, np.pi, STREAK_ANGLES, endpoint=False)
+
+    def spread(x: Blur) -> Array:
+        return np.sqrt(x.sigma_px**2 + x.streak_px**2 / 24 * (1 + np.cos(2 * (phi - x.angle_rad))))
+
+    return float(np.max(np.abs(spread(a) - spread(b))))
+
+
 def streak_kernel(length_px: float, angle_rad: float) -> NDArray[np.float32]:
     """A centred straight streak of ``length_px`` at ``angle_rad``, splatted bilinearly, sum 1."""
     n = 2 * int(np.ceil(0.5 * length_px)) + 3

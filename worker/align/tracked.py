@@ -21,7 +21,7 @@ import cv2
 import numpy as np
 from numpy.typing import NDArray
 
-from worker.align.blur import Blur, measure_blur
+from worker.align.blur import Blur, blur_change_px, measure_blur
 from worker.align.edges import detect_edge_points, normal_shift
 from worker.align.features import detect_corners, match_features, structure_whitening, track
 from worker.align.reflectance import fit_law, is_lambert, lambertised, law_angles, smoothness
@@ -52,6 +52,9 @@ MEASURE_MAX_LEFT_PX = 0.25
 MATCH_POOL = 200
 #: Edge points used at most, per corner allowed.
 EDGES_PER_CORNER = 3
+#: A blur (not a streak) measured again in the first frame a set is carried into that changed
+#: by more than this (px, :func:`blur_change_px`) is measured in every later frame too.
+BLUR_CHANGE_PX = 0.15
 #: A tracked frame whose law gain was placed this far (°) from where it converged is solved
 #: again (:func:`law_misplaced`).
 LAW_AGAIN_DEG = 0.2
@@ -85,9 +88,11 @@ class TrackedFeatures:
         # Equal sharpness too: a corner blurred differently in the two images sits elsewhere.
         # Blur acts on light, so it is measured and applied in linear units, then encoded.
         self.blur = measure_blur(ref_linear, to_grey(view.linear))
-        #: Whether the sequence shows motion blur: a streak (a moving camera or target smears
-        #: each frame along its own motion, so a tracker's carried sets measure it again).
-        self.smeared = self.blur.streak_px > 0.0
+        #: Whether a tracker's carried sets measure the blur again (see _blur_again): True
+        #: for a streak (motion blur), None (not known yet) for another blur, False for none.
+        self.smeared: bool | None = True if self.blur.streak_px > 0.0 else None
+        if not self.blur.active:
+            self.smeared = False
         if self.blur.active:
             # The curve again, against the render at the reference's sharpness: against the
             # sharp one, the light a softer reference spreads into the render's flat dark parts
@@ -150,9 +155,12 @@ class TrackedFeatures:
         else:
             part = on_render_scale(box.of(ref_image), self.tone_curve)
             ref_grey = box.paste(part, view.grey.shape)
-        if self.smeared:
-            new.blur = self._blur_again(ref_grey, view, box)
-            new._grey = new._normalised_view = None
+        if self.smeared is not False:
+            blur = self._blur_again(ref_grey, view, box)
+            if self.smeared is None:
+                new.smeared = blur_change_px(blur, self.blur) > BLUR_CHANGE_PX
+            if new.smeared:
+                new.blur, new._grey, new._normalised_view = blur, None, None
         if self.law_w > 0 or self.law_c > 0:
             ref_grey = lambertised(ref_grey, self.law_w, law_angles(session, view), self.law_c)
         new.scale = contrast_scale(new._render_grey(view), box=box)
@@ -181,14 +189,18 @@ class TrackedFeatures:
         """The blur of a new frame (``ref_grey``: its reference on this set's tone scale),
         measured as in a fresh set, on the box only; this set's when none is found there.
 
-        A streak's length and direction follow the motion during each exposure. On the
-        bench's `motion` sequences (a 1.5 px streak drawn afresh in every frame; the asteroid
-        and Aura, approach and tumble, 12 frames) tracked frames that kept the first frame's
-        streak ended 0.10-0.13° from the truth at the median of three, the fourth's worst frame
-        0.60° off; measuring it in every frame, medians 0.02-0.06°, the worst frame 0.18°
-        (bench/README.md, "Motion blur measured in every tracked frame"). A Gaussian blur
-        (defocus, a pixel filter) stays with the camera: measuring it again made no sequence
-        better and each tracked frame 0.05-0.15 s slower, so only a streak is."""
+        Motion blur follows the motion during each exposure. On the bench's `motion`
+        sequences (a 1.5 px streak drawn afresh in every frame; the asteroid and Aura, approach
+        and tumble, 12 frames) tracked frames that kept the first frame's blur ended 0.10-0.13°
+        from the truth at the median of three, the fourth's worst frame 0.60° off; measured in
+        every frame, medians 0.02-0.06°, the worst frame 0.18° (bench/README.md, "Motion blur
+        measured again in tracked frames"). A blur that stays (defocus, a pixel filter) gained
+        nothing from being measured in every frame and cost 0.05-0.15 s a frame. So a set with
+        a streak measures it in every frame it is carried into; one with another blur measures
+        it in the first, and goes on only if it changed by more than BLUR_CHANGE_PX
+        (:func:`blur_change_px`). Aura's edges lie in few directions: there the streak is often
+        not found, the σ found instead changes little, and the sequences gain less (medians
+        0.128 → 0.090° and 0.033 → 0.031°, the worst frames 0.24 → 0.19° and 0.60 → 0.11°)."""
         linear = view.linear if box is None else box.of(view.linear)
         ref = ref_grey if box is None else box.of(ref_grey)
         blur = measure_blur(srgb_decode(ref), to_grey(linear))

@@ -358,8 +358,9 @@ class Tracker:
             self._memory = _Memory(st, memory.learned_pose, memory.learned_features, session)
             return False
         fresh = self._fresh(session)
-        # Once frames showed motion blur, later ones measure it again (TrackedFeatures.smeared).
-        fresh.features.smeared |= st.features.smeared  # type: ignore[union-attr]
+        # Once frames showed a changing blur, later ones measure it too (TrackedFeatures.smeared).
+        if st.features.smeared:  # type: ignore[union-attr]
+            fresh.features.smeared = True  # type: ignore[union-attr]
         if session.options.fit_sun:
             session.options = session.options.model_copy(
                 update={"max_iterations": len(session.history) + FRAME_ITERATIONS}
