@@ -287,7 +287,10 @@ def _search(trial: Callable[[float], _Trial], grid: tuple[float, ...]) -> tuple[
     trials = [trial(x) for x in grid]
     misfits = [t.misfit for t in trials]
     i = int(np.argmin(misfits))
-    refined = trial(grid_vertex(misfits, i, grid))  # the grid's own trial when no parabola
+    vertex = grid_vertex(misfits, i, grid)
+    if vertex == grid[i]:  # no parabola (the best at the grid's end): nothing to try again
+        return trials[i].law, misfits
+    refined = trial(vertex)
     return (refined if refined.misfit < trials[i].misfit else trials[i]).law, misfits
 
 

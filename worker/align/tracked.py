@@ -90,10 +90,9 @@ class TrackedFeatures:
         self.blur = measure_blur(ref_linear, to_grey(view.linear))
         #: Whether a tracker's carried sets measure the blur again (see _blur_again): True
         #: for a streak (motion blur), None (not known yet) for another blur, False for none.
-        self.smeared: bool | None = True if self.blur.streak_px > 0.0 else None
-        if not self.blur.active:
-            self.smeared = False
+        self.smeared: bool | None = False
         if self.blur.active:
+            self.smeared = True if self.blur.streak_px > 0.0 else None
             # The curve again, against the render at the reference's sharpness: against the
             # sharp one, the light a softer reference spreads into the render's flat dark parts
             # bent the curve's foot (dark levels mapped 10-15 % too low: a gamma) and moved
