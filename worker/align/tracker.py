@@ -198,14 +198,16 @@ class Tracker:
 
     # -- a full estimate (first frame, re-initialisation) ---------------------------------
     def _full(
-        self,
-        image: FloatImage,
-        guess: Pose,
-        truth: Pose | None,
-        index: int,
-        start: float,
+        self, image: FloatImage, guess: Pose, truth: Pose | None, index: int, start: float,
         status: str,
-    ) -> FrameResult:
+    ) -> FrameResult:  # fmt: skip
+        """A full estimate from ``guess``; the next frames go on from features made afresh
+        where it ended and rows learned there. The estimate's own last feature set (made and
+        learned where its last pass began, Broyden-updated since) left the first tracked
+        frames' steps short along a weakly seen rotation: on an Aura approach (`combined`,
+        sequence seed 3001) frames 2-6 ended 0.24-0.41° off after a re-initialised frame 0.055°
+        off; started at its truth, frame 2 ended 0.046° off. With the fresh set, frames 1-6
+        0.02-0.22° (bench/README.md, "A fresh feature set after each full estimate")."""
         request = self.request.model_copy(
             update={"initial_pose": pose_to_schema(*guess), "ground_truth": None}
         )
@@ -216,42 +218,32 @@ class Tracker:
         assert session is not None
         self._requested = session.requested_lighting
         result = est.result
-        if session.last_stage is None or not isinstance(
-            session.last_stage.features, TrackedFeatures
-        ):
-            self._memory = None
-        else:
-            st = session.last_stage
-            self._memory = _Memory(st, (session.R, session.t), int(st.ok.sum()), session)
+        renders, cost, pose = result.renders, result.render_cost, (session.R, session.t)
+        st, self._memory = session.last_stage, None
+        if st is not None and isinstance(st.features, TrackedFeatures):
+            self._memory = _Memory(st, pose, int(st.ok.sum()), session)
+            fresh = self._session(session, image, pose, truth)
+            try:
+                st = self._fresh(fresh)
+                self._memory = _Memory(st, pose, int(st.ok.sum()), fresh)
+            except ProxposeError:
+                pass  # the estimate's own last set, then
+            renders, cost = renders + fresh.renders, round(cost + fresh.render_cost, 3)
         return FrameResult(
-            index,
-            session.R,
-            session.t,
-            status,
-            result.converged,
-            time.perf_counter() - start,
-            result.renders,
-            result.render_cost,
-            result.alignment_score,
-            result.features,
-            result.covariance,
-            errors_between(truth, session.R, session.t),
-            reason=result.reason,
-        )
+            index, *pose, status, result.converged, time.perf_counter() - start, renders, cost,
+            result.alignment_score, result.features, result.covariance,
+            errors_between(truth, *pose), reason=result.reason,
+        )  # fmt: skip
 
     # -- a tracked frame ------------------------------------------------------------------
     def _tracked(
         self, image: FloatImage, truth: Pose | None, index: int, start: float
     ) -> FrameResult:
         """A frame from the previous one's state; when its LM does not converge, or the referee
-        rejects the frame, a full estimate (:meth:`_recover`).
-
-        A second pass from features made afresh where the first stopped (as this did until
-        2026-12-05) could converge far from the truth: its features are made to fit the pose
-        they are made at. On an ISS approach (`combined`, 2 % closer a frame) the first pass
-        stopped 0.70° off after its iterations, the second "converged" 0.64° off, and the
-        velocity carried that on to 2.4° and 7 % of the range in three frames, every one of
-        them converged (bench/README.md, "The sun solved again at each relearning")."""
+        rejects the frame, a full estimate (:meth:`_recover`), not a second pass from features
+        made where the first stopped: on an ISS approach such a pass "converged" 0.64° off and
+        the velocity carried that to 2.4° in three frames (bench/README.md, "The sun solved
+        again at each relearning")."""
         memory = self._memory
         assert memory is not None
         R_p, t_p = self.predicted()
