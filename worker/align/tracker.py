@@ -132,6 +132,11 @@ class _Memory:
     learned_features: int  # how many features it was learned for
     session: Session = field(repr=False)
 
+    @classmethod
+    def learned_here(cls, state: StageState, session: Session) -> _Memory:
+        """``state``, its Jacobian learned at ``session``'s pose."""
+        return cls(state, (session.R, session.t), int(state.ok.sum()), session)
+
 
 class Tracker:
     """Estimates the pose in each frame of a sequence, in order (see the module docstring)."""
@@ -221,13 +226,11 @@ class Tracker:
         renders, cost, pose = result.renders, result.render_cost, (session.R, session.t)
         st, self._memory = session.last_stage, None
         if st is not None and isinstance(st.features, TrackedFeatures):
-            self._memory = _Memory(st, pose, int(st.ok.sum()), session)
             fresh = self._session(session, image, pose, truth)
             try:
-                st = self._fresh(fresh)
-                self._memory = _Memory(st, pose, int(st.ok.sum()), fresh)
-            except ProxposeError:
-                pass  # the estimate's own last set, then
+                self._memory = _Memory.learned_here(self._fresh(fresh), fresh)
+            except ProxposeError:  # the estimate's own last set, then
+                self._memory = _Memory.learned_here(st, session)
             renders, cost = renders + fresh.renders, round(cost + fresh.render_cost, 3)
         return FrameResult(
             index, *pose, status, result.converged, time.perf_counter() - start, renders, cost,
@@ -362,7 +365,7 @@ class Tracker:
             except TooFewFeaturesError:
                 pass  # the sun and the pose stay where the frame put them
             fresh.sun_J = None  # the next frames keep this sun and solve for the pose only
-        self._memory = _Memory(fresh, (session.R, session.t), int(fresh.ok.sum()), session)
+        self._memory = _Memory.learned_here(fresh, session)
         return True
 
     @staticmethod
