@@ -141,6 +141,14 @@ class EstimateOptions(BaseModel):
         "better. Learned rows miss the near-cancellation of a weakly seen direction (a flat "
         "target's out-of-plane rotation against a lateral shift) and stop short there.",
     )
+    geometric_recheck_deg: float = Field(
+        default=0.15,
+        ge=0.0,
+        le=10.0,
+        description="When the geometric pass is kept and turned the attitude by more than this "
+        "(degrees), the learned passes had stopped short: one more learned pass (features made "
+        "afresh) and geometric pass run from its pose, up to twice. 0: never.",
+    )
     reflectance: Literal["auto", "lambert", "fit"] = Field(
         default="auto",
         description="Reflectance law of the renders: 'lambert'; 'fit' = fit the share of a "

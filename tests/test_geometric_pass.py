@@ -139,3 +139,45 @@ def test_too_few_geometric_rows_leave_the_learned_pose(
     monkeypatch.setattr(geometric, "run_lm_stage", too_few)
     result, _ = _run(demo_model, view, geometric_pass=True)
     assert result.pose == learned.pose and result.covariance == learned.covariance
+
+
+@pytest.mark.parametrize(
+    ("turns", "learned_passes"),
+    [
+        ([0.02], 0),  # a small move: the learned passes had converged
+        ([0.5, 0.01], 1),  # a large one: one more learned pass, then the pass again
+        ([0.5, 0.4, 0.3], 2),  # at most MAX_RECHECKS more learned passes
+        ([0.5, None], 1),  # the pass after the extra learned one is undone
+    ],
+)
+def test_a_large_geometric_move_earns_another_learned_pass(
+    monkeypatch: pytest.MonkeyPatch, turns: list[float | None], learned_passes: int
+) -> None:
+    # (narrow: the passes are fakes; the view above runs the real ones)
+    from types import SimpleNamespace
+
+    from worker.engine.posemath import axis_angle_to_matrix
+
+    moves = iter(turns)
+
+    def fake_pass(session: SimpleNamespace) -> tuple[bool, str | None]:
+        turn = next(moves)
+        if turn is None:
+            return False, "cost_converged"
+        session.R = session.R @ axis_angle_to_matrix(np.array([0.0, 1.0, 0.0]), np.radians(turn))
+        return True, "step_below_epsilon"
+
+    calls: list[str] = []
+    monkeypatch.setattr(geometric, "run_geometric_pass", fake_pass)
+    session = SimpleNamespace(
+        R=np.eye(3), options=EstimateOptions(geometric_recheck_deg=0.15), iterations_left=10
+    )
+    outcome = geometric.geometric_passes(
+        session,  # type: ignore[arg-type]
+        lambda: calls.append("learned") or "slow",
+        "slow",
+    )
+    assert len(calls) == learned_passes
+    # the stop rule of the last pass that moved the pose: a kept geometric pass's own
+    assert outcome == ("slow" if turns[-1] is None else "step_below_epsilon")
+    assert geometric.MAX_RECHECKS == 2

@@ -24,7 +24,7 @@ from worker.align.coarse import (
     run_moment_alignment,
     run_pnp_stage,
 )
-from worker.align.geometric import run_geometric_pass
+from worker.align.geometric import geometric_passes
 from worker.align.learning import apparent_radius_px
 from worker.align.lm import covariance
 from worker.align.pyramid import LevelPlan, level_spp, plan_levels
@@ -280,7 +280,7 @@ def _refine(
             break
         passes += 1
     if opts.geometric_pass:
-        run_geometric_pass(session)
+        outcome = geometric_passes(session, partial(_pass, session, fit_sun), outcome)
     return "max_iterations" if outcome in ("handover", "slow") else outcome
 
 
