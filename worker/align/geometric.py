@@ -12,7 +12,9 @@ rms of feature motion, the renders showed 0.16 px). The LM then proposes steps t
 refuse and stops there, "converged", with a covariance that calls that direction well seen. The
 rows from ray-cast geometry (as the 'fast' method uses) get the cancellation right; each step is
 still checked by a trial render as in any LM pass, and the pass is undone when the features fit
-worse afterwards.
+worse afterwards. A kept pass that turns the attitude far (options.geometric_recheck_deg) shows
+the learned passes stopped short: one more learned pass runs from its pose, and this pass again
+(:func:`geometric_passes`).
 """
 
 from __future__ import annotations
