@@ -151,17 +151,25 @@ def test_bad_input_exits_2_with_one_line(sequence_dir: Path, tmp_path: Path, cas
 
 @pytest.mark.slow
 def test_a_frame_that_learns_its_jacobian_again_solves_for_the_sun_again(
-    demo_model: LoadedModel,
+    demo_model: LoadedModel, monkeypatch: pytest.MonkeyPatch
 ) -> None:
     """Tracked frames keep the sun the last fit left; a frame that learns its Jacobian again
     (the target turned RELEARN_ROTATION_DEG) solves for the sun's tilt again, its prior the
-    request's sun. The request's sun is 4° off here (the bench's `sun` class)."""
+    request's sun. The request's sun is 4° off here (the bench's `sun` class).
+
+    The target turns 2° a frame and the threshold is lowered to 3°, so that of two frames
+    tracked after rows were learned the first keeps them and the second learns again: on this
+    small target some frames are lost and re-initialised (which learns afresh), and which ones
+    depends on the CPU (at 3.5° a frame and 6°, on an AMD EPYC VM frames 1 and 3 were, and no
+    frame had turned 6° since its rows were learned)."""
     from schemas.camera import Camera
     from worker.align.tracker import Tracker
     from worker.bench.sequences import Motion, make_sequence
 
-    motion = Motion("turning", spin_deg=3.5, closing=0.0)
-    seq = make_sequence(demo_model, Camera(**CAMERA), motion, 5, 11, "sun", fill=0.9)
+    monkeypatch.setattr("worker.align.tracker.RELEARN_ROTATION_DEG", 3.0)
+
+    motion = Motion("turning", spin_deg=2.0, closing=0.0)
+    seq = make_sequence(demo_model, Camera(**CAMERA), motion, 7, 11, "sun", fill=0.9)
     assert seq.request.options.fit_sun and seq.request.lighting is not None
     asked = seq.request.lighting.sun_direction
     tracker = Tracker(demo_model, seq.request)
@@ -184,7 +192,7 @@ def test_a_frame_that_learns_its_jacobian_again_solves_for_the_sun_again(
         assert list(memory.session.requested_lighting.sun_direction) == pytest.approx(asked)
         suns.append(np.asarray(memory.session.renderer.lighting.sun_direction))
         unknowns.append(fit.J.shape[1] if fit else 0)  # 8: the pose and the sun's tilt
-    assert "relearned" in status[1:], status
+    assert "relearned" in status[1:] and "tracked" in status[1:], status
     moved = [float(np.linalg.norm(b - a)) for a, b in zip(suns[:-1], suns[1:], strict=True)]
     for k in range(1, len(suns)):
         if status[k] == "relearned":
