@@ -12,7 +12,13 @@ from schemas.camera import Camera
 from schemas.estimate import EstimateRequest
 from schemas.pose import Pose
 from worker.align.session import Session
-from worker.align.tracker import FRAME_ITERATIONS, TRACK_PERTURBATION_SPP, FrameResult, Tracker
+from worker.align.tracker import (
+    FRAME_ITERATIONS,
+    TRACK_PERTURBATION_SPP,
+    VELOCITY_FRAMES,
+    FrameResult,
+    Tracker,
+)
 from worker.engine.metrics import rotation_error_deg
 from worker.engine.posemath import axis_angle_to_matrix
 
@@ -78,7 +84,7 @@ def _scripted_tracker(frames: list[tuple[str, float]]) -> Tracker:
     camera = Camera(width=64, height=64, fx=60.0, fy=60.0, cx=31.5, cy=31.5)
     initial = Pose(t=list(map(float, T0)), quaternion=[1.0, 0.0, 0.0, 0.0])
     tracker.request = EstimateRequest(camera=camera, initial_pose=initial)
-    tracker.poses, tracker._velocity, tracker._misalignment = [], None, []
+    tracker.poses, tracker._motions, tracker._misalignment = [], [], []
     tracker._memory = None  # every frame goes through _full, scripted
     tracker._full = next_frame  # type: ignore[method-assign]
     image = np.zeros((64, 64), np.float32)
@@ -106,3 +112,23 @@ def test_a_jump_is_not_a_velocity() -> None:
         [("reinitialised", 0.0), ("tracked", 1.0), ("tracked", 2.0), ("reinitialised", 5.0)]
     )
     np.testing.assert_allclose(_predicted_deg(tracker), 6.0, atol=1e-6)
+
+
+def test_the_velocity_is_the_mean_of_the_last_motions() -> None:
+    # a frame left 0.3° along: the next start is carried 0.1° on by it, not 0.3°
+    tracker = _scripted_tracker(
+        [("reinitialised", 0.0), ("tracked", 1.0), ("tracked", 2.0), ("tracked", 3.3)]
+    )
+    assert VELOCITY_FRAMES == 3
+    np.testing.assert_allclose(_predicted_deg(tracker), 3.3 + 1.1, atol=1e-4)
+    # only the last VELOCITY_FRAMES motions count: the first, slower one is gone
+    tracker = _scripted_tracker(
+        [
+            ("reinitialised", 0.0),
+            ("tracked", 0.5),
+            ("tracked", 1.5),
+            ("tracked", 2.5),
+            ("tracked", 3.5),
+        ]
+    )
+    np.testing.assert_allclose(_predicted_deg(tracker), 4.5, atol=1e-4)

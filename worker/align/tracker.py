@@ -94,6 +94,11 @@ LINEAR_STEP_PX = 0.25
 #: and frames 2 and 3 ended 0.56° and 0.54° off, converged.
 FIRST_VELOCITY_MAX_DEG = 6.0
 
+#: Motions averaged into the velocity: an error e_k a frame leaves along a weakly seen direction
+#: (where the next frame's cost is flat and its start stands) enters the next start as
+#: 2e_k − e_(k−1) from the last motion, as 4e_k/3 − e_(k−3)/3 from three (bench/README.md).
+VELOCITY_FRAMES = 3
+
 #: The LM's stop rules that count as converged.
 CONVERGED = ("step_below_epsilon", "cost_converged", "linear_step")
 
@@ -150,9 +155,9 @@ class Tracker:
         self.model, self.should_cancel = model, should_cancel
         self.request = request.model_copy(update={"options": options})
         self.poses: list[Pose] = []
-        #: The motion into the last tracked frame (an increment, [δq, δt]): what predicted()
-        #: adds to the last pose.
-        self._velocity: Array | None = None
+        #: The motions (increments [δq, δt]) into the last tracked frames: their mean is the
+        #: velocity predicted() adds to the last pose.
+        self._motions: list[Array] = []
         self._misalignment: list[float] = []
         self._memory: _Memory | None = None
         #: The request's sun (a full estimate's ``requested_lighting``): the prior of a tracked
@@ -175,11 +180,12 @@ class Tracker:
             frame = self._tracked(image, truth, index, start)
         if self.poses and frame.status != "lost":
             R1, t1 = self.poses[-1]
-            first = self._velocity is None
+            first = not self._motions
             if frame.status == "tracked" or (
                 first and rotation_error_deg(R1, frame.R) <= FIRST_VELOCITY_MAX_DEG
             ):
-                self._velocity = increment_between(R1, t1, frame.R, frame.t)
+                motion = increment_between(R1, t1, frame.R, frame.t)
+                self._motions = [*self._motions, motion][-VELOCITY_FRAMES:]
         self.poses.append((frame.R, frame.t))
         if frame.status != "lost":
             self._misalignment.append(1.0 - frame.alignment_score)
@@ -192,14 +198,14 @@ class Tracker:
         return 1.0 - score > max(MISALIGNMENT_GROWTH * level, MIN_MISALIGNMENT)
 
     def predicted(self) -> Pose:
-        """The next pose by constant velocity: the last pose moved by the last tracked frame's
-        motion (the last pose itself before any). The motion into a re-initialised frame is
-        not a velocity (after a jump it would predict the jump again), unless there is none
-        yet (see FIRST_VELOCITY_MAX_DEG)."""
+        """The next pose by constant velocity: the last pose moved by the mean motion into the
+        last VELOCITY_FRAMES tracked frames (the last pose itself before any). The motion into
+        a re-initialised frame is not a velocity (after a jump it would predict the jump
+        again), unless there is none yet (see FIRST_VELOCITY_MAX_DEG)."""
         R1, t1 = self.poses[-1]
-        if self._velocity is None:
+        if not self._motions:
             return R1, t1
-        return apply_increment(R1, t1, self._velocity)
+        return apply_increment(R1, t1, np.mean(self._motions, axis=0))
 
     # -- a full estimate (first frame, re-initialisation) ---------------------------------
     def _full(
