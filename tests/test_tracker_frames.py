@@ -14,6 +14,8 @@ from schemas.pose import Pose
 from worker.align.session import Session
 from worker.align.tracker import (
     FRAME_ITERATIONS,
+    MIN_KEPT_FRACTION,
+    MIN_TRACKED_FRACTION,
     TRACK_PERTURBATION_SPP,
     VELOCITY_FRAMES,
     FrameResult,
@@ -132,3 +134,18 @@ def test_the_velocity_is_the_mean_of_the_last_motions() -> None:
         ]
     )
     np.testing.assert_allclose(_predicted_deg(tracker), 4.5, atol=1e-4)
+
+
+def test_a_frame_that_lost_half_its_features_learns_again_instead_of_being_lost() -> None:
+    # converged and aligned: fewer than MIN_KEPT_FRACTION of the learned features make the
+    # frame learn afresh (Tracker._keep), only fewer than MIN_TRACKED_FRACTION make it lost
+    tracker = Tracker.__new__(Tracker)
+    tracker._misalignment = [0.004] * 5
+    assert MIN_TRACKED_FRACTION < MIN_KEPT_FRACTION
+    assert not tracker._lost("linear_step", 0.995, 40, 100)
+    assert not tracker._lost("cost_converged", 0.995, 26, 100)
+    assert tracker._lost("cost_converged", 0.995, 24, 100)
+    # the other rules stand: a stop rule that is no convergence, a poor or a jumping score
+    assert tracker._lost("max_iterations", 0.995, 100, 100)
+    assert tracker._lost("linear_step", 0.80, 100, 100)
+    assert tracker._lost("linear_step", 0.98, 100, 100)  # 5 × the last frames' misalignment

@@ -20,9 +20,9 @@ A frame's renders render only a window around the target, pasted onto the sky
 
 Each frame is refereed: an LM that does not converge, a last render that explains the image
 poorly (alignment score below MIN_TRACK_SCORE, or far below the last frames') or too few
-features mark it lost, and the tracker re-initialises with a full estimate ('reinitialised'),
-from where the LM got to when that still aligns, else from the prediction; when that fails
-too, the frame is 'lost' and the prediction stands.
+features (MIN_TRACKED_FRACTION) mark it lost, and the tracker re-initialises with a full
+estimate ('reinitialised'), from where the LM got to when that still aligns, else from the
+prediction; when that fails too, the frame is 'lost' and the prediction stands.
 """
 
 from __future__ import annotations
@@ -65,8 +65,13 @@ MIN_TRACK_SCORE = 0.85
 MISALIGNMENT_GROWTH = 3.0
 MISALIGNMENT_FRAMES = 5
 MIN_MISALIGNMENT = 0.005
-#: Fraction of the features (learned together) that must still be found in a frame.
+#: Fraction of the features learned together that a frame must still fit to go on with them;
+#: below it the frame learns its Jacobian afresh, with features made where it converged.
+#: Below MIN_TRACKED_FRACTION the frame is lost. (A converged, aligned frame that had lost
+#: half its features was re-initialised: on an ISS tumble, three frames 2-4 s each, one 0.18°
+#: off where relearning left it 0.04°; bench/README.md, "Too few features: a relearning".)
 MIN_KEPT_FRACTION = 0.5
+MIN_TRACKED_FRACTION = 0.25
 #: Attitude change (deg) since the Jacobian was learned after which it is learned again.
 RELEARN_ROTATION_DEG = 6.0
 
@@ -197,6 +202,16 @@ class Tracker:
         level = float(np.median(recent)) if recent else 0.0
         return 1.0 - score > max(MISALIGNMENT_GROWTH * level, MIN_MISALIGNMENT)
 
+    def _lost(self, reason: str, score: float, n_features: int, learned: int) -> bool:
+        """The referee: whether a tracked frame is lost (its LM's stop rule, the alignment
+        score of its last render, and how many of the ``learned`` features it still fits)."""
+        return (
+            reason not in CONVERGED
+            or score < MIN_TRACK_SCORE
+            or self._misaligned(score)
+            or n_features < MIN_TRACKED_FRACTION * learned
+        )
+
     def predicted(self) -> Pose:
         """The next pose by constant velocity: the last pose moved by the mean motion into the
         last VELOCITY_FRAMES tracked frames (the last pose itself before any). The motion into
@@ -274,32 +289,17 @@ class Tracker:
             score, reason = -1.0, "too_few_features"
         fit = session.fit
         n_features = fit.features if fit is not None else 0
-        if (
-            reason not in CONVERGED
-            or score < MIN_TRACK_SCORE
-            or self._misaligned(score)
-            or n_features < MIN_KEPT_FRACTION * memory.learned_features
-        ):
+        if self._lost(reason, score, n_features, memory.learned_features):
             aligned = score >= MIN_TRACK_SCORE and not self._misaligned(score)
             guess = (session.R, session.t) if aligned else (R_p, t_p)
             return self._recover(image, guess, truth, index, start)
         relearned = self._keep(session, memory)
         return FrameResult(
-            index,
-            session.R,
-            session.t,
-            "tracked",
-            score >= MIN_CONVERGED_SCORE,
-            time.perf_counter() - start,
-            session.renders,
-            round(session.render_cost, 3),
-            score,
-            n_features,
-            covariance_of(session),
-            errors_between(truth, session.R, session.t),
-            relearned,
-            reason,
-        )
+            index, session.R, session.t, "tracked", score >= MIN_CONVERGED_SCORE,
+            time.perf_counter() - start, session.renders, round(session.render_cost, 3), score,
+            n_features, covariance_of(session), errors_between(truth, session.R, session.t),
+            relearned, reason,
+        )  # fmt: skip
 
     @staticmethod
     def _lm(session: Session, state: StageState) -> str:
@@ -354,7 +354,7 @@ class Tracker:
         "The sun solved again at each relearning")."""
         st = session.last_stage
         turned = rotation_error_deg(memory.learned_pose[0], session.R)
-        left = int(st.ok.sum())
+        left = min(int(st.ok.sum()), session.fit.features if session.fit is not None else 0)
         if turned < RELEARN_ROTATION_DEG and left >= MIN_KEPT_FRACTION * memory.learned_features:
             self._memory = _Memory(st, memory.learned_pose, memory.learned_features, session)
             return False
