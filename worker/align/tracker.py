@@ -68,7 +68,7 @@ MIN_MISALIGNMENT = 0.005
 #: Fraction of the features learned together that a frame must still fit to go on with them;
 #: below it the frame learns its Jacobian afresh, with features made where it converged.
 #: Below MIN_TRACKED_FRACTION the frame is lost. (A converged, aligned frame that had lost
-#: half its features was re-initialised: on an ISS tumble, three frames 2-4 s each, one 0.18°
+#: half its features was re-initialised: on an ISS tumble, three frames of ~2 s each, one 0.18°
 #: off where relearning left it 0.04°; bench/README.md, "Too few features: a relearning".)
 MIN_KEPT_FRACTION = 0.5
 MIN_TRACKED_FRACTION = 0.25
