@@ -68,8 +68,8 @@ MIN_MISALIGNMENT = 0.005
 #: Fraction of the features learned together that a frame must still fit to go on with them;
 #: below it the frame learns its Jacobian afresh, with features made where it converged.
 #: Below MIN_TRACKED_FRACTION the frame is lost. (A converged, aligned frame that had lost
-#: half its features was re-initialised: on an ISS tumble, three frames of ~2 s each, one 0.18°
-#: off where relearning left it 0.04°; bench/README.md, "Too few features: a relearning".)
+#: half its features was re-initialised: on an ISS tumble three frames of ~2 s each, and the
+#: sequence's worst frame 0.18° off, 0.04° with relearning; bench/README.md, "Too few ...".)
 MIN_KEPT_FRACTION = 0.5
 MIN_TRACKED_FRACTION = 0.25
 #: Attitude change (deg) since the Jacobian was learned after which it is learned again.
