@@ -293,7 +293,7 @@ class Tracker:
             aligned = score >= MIN_TRACK_SCORE and not self._misaligned(score)
             guess = (session.R, session.t) if aligned else (R_p, t_p)
             return self._recover(image, guess, truth, index, start)
-        relearned = self._keep(session, memory)
+        relearned = self._keep(session, memory, n_features)
         return FrameResult(
             index, session.R, session.t, "tracked", score >= MIN_CONVERGED_SCORE,
             time.perf_counter() - start, session.renders, round(session.render_cost, 3), score,
@@ -347,14 +347,14 @@ class Tracker:
         learned = LearnedJacobian(st.learned.J[rows], st.learned.ok[keep], st.learned.B, 0)
         return StageState(features, h, ok & st.ok[keep], learned, learned_at=view, level=view.level)
 
-    def _keep(self, session: Session, memory: _Memory) -> bool:
+    def _keep(self, session: Session, memory: _Memory, fitted: int) -> bool:
         """Remember this frame's state for the next; learn the Jacobian afresh (with new
         features) when the attitude has turned far since, or too few features are left, and
         then solve for the sun's tilt again too, the pose with it (measured: bench/README.md,
         "The sun solved again at each relearning")."""
         st = session.last_stage
         turned = rotation_error_deg(memory.learned_pose[0], session.R)
-        left = min(int(st.ok.sum()), session.fit.features if session.fit is not None else 0)
+        left = min(int(st.ok.sum()), fitted)  # fitted: the features the frame's fit used
         if turned < RELEARN_ROTATION_DEG and left >= MIN_KEPT_FRACTION * memory.learned_features:
             self._memory = _Memory(st, memory.learned_pose, memory.learned_features, session)
             return False
