@@ -11,6 +11,7 @@ import numpy as np
 import pytest
 from test_bench import REPO, proxpose, record, rows_of, run_bench
 
+from worker.bench.records import range_error_pct
 from worker.bench.report import markdown
 from worker.bench.stats import method_stats, summarize
 
@@ -48,6 +49,26 @@ def test_drift_bias_and_spread_come_from_each_cases_seeds() -> None:
     assert s["drift_spread_deg_median"] == pytest.approx(0.01)  # 0 and 0.02
     one = method_stats([end("a", 0, [0.05, 0.0, 0.0]), end("b", 0, [0.0, 0.02, 0.0])])
     assert one["drift_seeds"] == 1 and one["drift_bias_deg_median"] is None
+
+
+def test_range_error_is_signed_along_the_line_of_sight() -> None:
+    t = np.array([3.0, 0.0, 4.0])  # range 5
+    assert range_error_pct(t * 1.002, t) == pytest.approx(0.2)  # farther
+    assert range_error_pct(t * 0.999, t) == pytest.approx(-0.1)  # nearer
+    assert range_error_pct(t + np.array([0.4, 0.0, -0.3]), t) == pytest.approx(0.0)  # sideways
+
+
+def test_the_drift_range_median_keeps_its_sign() -> None:
+    """A scale bias (every estimate from the truth ends farther) shows as a signed median;
+    the translation error's size alone would read the same for a scatter about the truth."""
+    farther = [
+        {**record("default", 0.02, e), "start": "truth", "range_error_pct": e}
+        for e in (0.1, 0.2, 0.15)
+    ]
+    scattered = [{**r, "range_error_pct": e} for r, e in zip(farther, (0.1, -0.2, -0.15))]
+    assert method_stats(farther)["drift_range_error_pct_median"] == pytest.approx(0.15)
+    assert method_stats(scattered)["drift_range_error_pct_median"] == pytest.approx(-0.15)
+    assert method_stats(scattered)["drift_translation_pct_median"] == pytest.approx(0.15)
 
 
 def test_robustness_summary_groups_by_class_and_kind() -> None:
@@ -153,6 +174,8 @@ def test_quick_robustness_bench_reports_drift(tmp_path: Path) -> None:
             assert r["initial_rotation_deg"] == pytest.approx(0.0, abs=1e-6)
         if not r["failed"]:  # the error as a vector, as long as the angle
             assert np.linalg.norm(r["rotation_vector_deg"]) == pytest.approx(r["rotation_deg"])
+            # the signed range error is a part of the translation error
+            assert abs(r["range_error_pct"]) <= r["translation_pct"] + 1e-9
     for ref in ("faceted", "jpeg"):  # each class's two truth estimates have seeds of their own
         truth = [
             r for r in cases if (r["reference"], r["start"], r["method"]) == (ref, "truth", "pnp")
@@ -164,6 +187,7 @@ def test_quick_robustness_bench_reports_drift(tmp_path: Path) -> None:
     assert default["drift_seeds"] == 2 and default["drift_spread_deg_median"] is not None
     md = (out / "bench.md").read_text()
     assert "drift rot. median" in md and "#### Class `jpeg`" in md and "(2 seeds)" in md
+    assert "drift range, signed" in md and default["drift_range_error_pct_median"] is not None
     saved = {p.name for p in (out / "cases" / "demo-faceted-00").iterdir()}
     names = {f"request_{m}{tag}.json" for m in ("default", "pnp") for tag in ("", "_truth")}
     assert names | {"request_default_truth_seed1.json", "reference.png"} <= saved

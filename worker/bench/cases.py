@@ -376,4 +376,4 @@ def run_method(
         "peak_memory_mb": (peak := peak_memory_mb()),
         "memory_rise_mb": peak - resident if peak is not None and resident is not None else None,
     }
-    return {**record, **outcome(result, case.R_true), **costs}
+    return {**record, **outcome(result, case.R_true, case.t_true), **costs}

@@ -20,6 +20,7 @@ def failure(code: str, exc: Exception) -> dict[str, Any]:
         "rotation_deg": None,
         "rotation_vector_deg": None,
         "translation_pct": None,
+        "range_error_pct": None,
         "translation": None,
         "speed_score": None,
         "iterations": None,
@@ -59,19 +60,32 @@ def rotation_vector_deg(R_est: NDArray[np.float64], R_true: NDArray[np.float64])
     return [float(v) for v in np.degrees(matrix_to_rotvec(R_est @ R_true.T))]
 
 
-def outcome(result: EstimateResult, R_true: NDArray[np.float64]) -> dict[str, Any]:
-    """The record of an estimate that returned (``R_true``: the case's true rotation)."""
+def range_error_pct(t_est: NDArray[np.float64], t_true: NDArray[np.float64]) -> float:
+    """The translation error along the true line of sight, % of the range, signed: > 0 when
+    the estimate puts the target farther than it is. A sign that holds over a class's cases
+    is a scale bias (the target's outline found too small or too large), which the
+    translation error's size alone does not tell from scatter."""
+    t_true = np.asarray(t_true, dtype=np.float64)
+    return float(100.0 * (np.asarray(t_est) - t_true) @ t_true / (t_true @ t_true))
+
+
+def outcome(
+    result: EstimateResult, R_true: NDArray[np.float64], t_true: NDArray[np.float64]
+) -> dict[str, Any]:
+    """The record of an estimate that returned (``R_true``, ``t_true``: the case's true pose)."""
     from worker.engine.posemath import pose_from_schema
 
     err = result.errors
     assert err is not None  # every bench request carries the ground truth
+    R_est, t_est = pose_from_schema(result.pose)
     return {
         "failed": False,
         "error_code": None,
         "error": None,
         "rotation_deg": err.rotation_deg,
-        "rotation_vector_deg": rotation_vector_deg(pose_from_schema(result.pose)[0], R_true),
+        "rotation_vector_deg": rotation_vector_deg(R_est, R_true),
         "translation_pct": err.translation_pct_of_range,
+        "range_error_pct": range_error_pct(t_est, t_true),
         "translation": err.translation,
         "speed_score": err.speed_score,
         "iterations": result.iterations,

@@ -11,6 +11,8 @@ Conventions (also stated in bench/README.md):
   as rotation vectors, give its *bias* (the length of their mean: where any seed goes) and its
   *spread* (their RMS distance from that mean: the part the seed decides); both are medians
   over the cases.
+- The range error is signed (> 0: the estimate is farther than the truth); its median over a
+  group, from the offsets and from the truth, shows a scale bias the sizes of the errors hide.
 - Cost statistics (iterations, renders) are over the estimates that returned; wall seconds
   are over all of them (a failure costs time too).
 - Percentiles interpolate linearly (numpy's default); with few cases p90 is near the maximum.
@@ -101,6 +103,7 @@ def _offset_stats(records: list[Record]) -> Stats:
         "rotation_deg_p90": _pct(errs[:, 0], 90),
         "translation_pct_median": _pct(errs[:, 1], 50),
         "translation_pct_p90": _pct(errs[:, 1], 90),
+        "range_error_pct_median": _pct((r.get("range_error_pct") for r in returned), 50),
         "speed_score_median": _pct(errs[:, 2], 50),
         "iterations_median": _pct((r["iterations"] for r in returned), 50),
         "renders_median": _pct((r["renders"] for r in returned), 50),
@@ -120,6 +123,7 @@ def _drift_stats(records: list[Record]) -> Stats:
     the pose where it was; the failures are counted apart)."""
     rot = [0.0 if r["failed"] else r["rotation_deg"] for r in records]
     tr = [0.0 if r["failed"] else r["translation_pct"] for r in records]
+    signed = [0.0 if r["failed"] else r.get("range_error_pct") for r in records]
     return {
         "drift_cases": len(records),
         "drift_failures": sum(bool(r["failed"]) for r in records),
@@ -127,6 +131,7 @@ def _drift_stats(records: list[Record]) -> Stats:
         "drift_rotation_deg_p90": _pct(rot, 90),
         "drift_translation_pct_median": _pct(tr, 50),
         "drift_translation_pct_p90": _pct(tr, 90),
+        "drift_range_error_pct_median": _pct(signed, 50),
     }
 
 
