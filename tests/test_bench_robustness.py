@@ -65,7 +65,8 @@ def test_the_drift_range_median_keeps_its_sign() -> None:
         {**record("default", 0.02, e), "start": "truth", "range_error_pct": e}
         for e in (0.1, 0.2, 0.15)
     ]
-    scattered = [{**r, "range_error_pct": e} for r, e in zip(farther, (0.1, -0.2, -0.15), strict=True)]
+    signs = (0.1, -0.2, -0.15)
+    scattered = [{**r, "range_error_pct": e} for r, e in zip(farther, signs, strict=True)]
     assert method_stats(farther)["drift_range_error_pct_median"] == pytest.approx(0.15)
     assert method_stats(scattered)["drift_range_error_pct_median"] == pytest.approx(-0.15)
     assert method_stats(scattered)["drift_translation_pct_median"] == pytest.approx(0.15)
