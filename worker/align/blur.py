@@ -101,10 +101,7 @@ class Blur:
 
 
 def blur_and_tone(
-    ref_image: FloatImage,
-    render_linear: FloatImage,
-    start: Blur | None = None,
-    rounds: int = BLUR_TONE_ROUNDS,
+    ref_image: FloatImage, render_linear: FloatImage, start: Blur | None = None
 ) -> tuple[Blur, ToneCurve, FloatImage]:
     """The reference's blur relative to the render, its tone curve onto the render's scale,
     and the reference in the render's linear units through that curve; ``start``: the blur
@@ -123,10 +120,10 @@ def blur_and_tone(
     one curve and one blur, as many as one set measured before."""
     grey = to_grey(render_linear)
     blur = start if start is not None else Blur()
-    for round_ in range(rounds + 2):
+    for round_ in range(BLUR_TONE_ROUNDS + 2):
         curve = reference_tone_curve(ref_image, blur.apply(render_linear))
         ref_linear = srgb_decode(on_render_scale(ref_image, curve))
-        if round_ == rounds + 1:
+        if round_ == BLUR_TONE_ROUNDS + 1:
             break
         again = measure_blur(ref_linear, grey, near=blur if blur.active else None)
         if not again.active and not blur.active:

@@ -21,13 +21,7 @@ import cv2
 import numpy as np
 from numpy.typing import NDArray
 
-from worker.align.blur import (
-    BLUR_TONE_ROUNDS,
-    Blur,
-    blur_and_tone,
-    blur_change_px,
-    measure_blur,
-)
+from worker.align.blur import Blur, blur_and_tone, blur_change_px, measure_blur
 from worker.align.edges import detect_edge_points, normal_shift
 from worker.align.features import detect_corners, match_features, structure_whitening, track
 from worker.align.reflectance import fit_law, is_lambert, lambertised, law_angles, smoothness
@@ -94,9 +88,8 @@ class TrackedFeatures:
         start = None  # blur is where this one's measurement starts
         if last is not None and last.level == view.level:
             start = getattr(last.features, "blur", None)
-        rounds = BLUR_TONE_ROUNDS if view.level == 1.0 else 0
         self.blur, self.tone_curve, ref_linear = blur_and_tone(
-            session.ref_image, view.linear, start, rounds
+            session.ref_image, view.linear, start
         )
         #: Whether a tracker's carried sets measure the blur again (see _blur_again): True
         #: for a streak (motion blur), None (not known yet) for another blur, False for none.
