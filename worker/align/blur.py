@@ -70,8 +70,6 @@ STREAK_GAIN = 0.8
 #: first measurement (then the curve is fitted with the last one).
 BLUR_TONE_TOL_PX = 0.01
 BLUR_TONE_ROUNDS = 2
-#: A blur measured again near one measured before tries the grid's σ within this many steps.
-NEAR_STEPS = 2
 
 
 @dataclass(frozen=True)
@@ -125,7 +123,7 @@ def blur_and_tone(
         ref_linear = srgb_decode(on_render_scale(ref_image, curve))
         if round_ == BLUR_TONE_ROUNDS + 1:
             break
-        again = measure_blur(ref_linear, grey, near=blur if blur.active else None)
+        again = measure_blur(ref_linear, grey)
         if not again.active and not blur.active:
             return again, curve, ref_linear  # no blur: the curve is the sharp render's
         if blur_change_px(again, blur) < BLUR_TONE_TOL_PX:
@@ -175,38 +173,16 @@ def relative_blur(reference_linear: FloatImage, render_linear: FloatImage) -> fl
     """Gaussian σ (px) to apply to the render's light so its edges are as soft as the
     reference's (one σ for every direction). Both are grey, linear, on one tone scale and
     roughly aligned."""
-    return (_measure(reference_linear, render_linear, streaks=False) or Blur()).sigma_px
+    return _measure(reference_linear, render_linear, streaks=False).sigma_px
 
 
-def measure_blur(
-    reference_linear: FloatImage, render_linear: FloatImage, near: Blur | None = None
-) -> Blur:
+def measure_blur(reference_linear: FloatImage, render_linear: FloatImage) -> Blur:
     """The :class:`Blur` that makes the render's edges as soft as the reference's: a Gaussian,
-    or a streak and a Gaussian when the reference is smeared along one direction.
-
-    ``near``: a Gaussian measured before on these images (through another tone curve, see
-    :func:`blur_and_tone`): only the grid's σ within NEAR_STEPS steps of it are tried, and no
-    streak (the whole grid again when the best is at the edge of that window)."""
-    if near is not None and near.streak_px == 0.0:
-        i = int(round(near.sigma_px / float(BLUR_GRID_PX[1])))
-        lo, hi = max(i - NEAR_STEPS, 0), min(i + NEAR_STEPS, len(BLUR_GRID_PX) - 1)
-        found = _measure(reference_linear, render_linear, False, slice(lo, hi + 1))
-        if found is not None:
-            return found
-    found = _measure(reference_linear, render_linear, streaks=True)
-    assert found is not None
-    return found
+    or a streak and a Gaussian when the reference is smeared along one direction."""
+    return _measure(reference_linear, render_linear, streaks=True)
 
 
-def _measure(
-    reference_linear: FloatImage,
-    render_linear: FloatImage,
-    streaks: bool,
-    window: slice | None = None,
-) -> Blur | None:
-    """The blur over the grid, or over ``window`` of it (None when the best σ is at an edge
-    of the window that is not the grid's)."""
-    grid = BLUR_GRID_PX if window is None else BLUR_GRID_PX[window]
+def _measure(reference_linear: FloatImage, render_linear: FloatImage, streaks: bool) -> Blur:
     ref_enc = srgb_encode(reference_linear).astype(np.float32)
     ren = render_linear.astype(np.float32)
     ren_enc = srgb_encode(ren).astype(np.float32)
@@ -225,7 +201,7 @@ def _measure(
 
     misfits, keep = [], np.ones(len(pts), dtype=bool)
     s = None  # each σ's alignment starts from the last one's (the shifts change little)
-    for sigma in grid:
+    for sigma in BLUR_GRID_PX:
         img = ren_enc if sigma == 0 else srgb_encode(cv2.GaussianBlur(ren, (0, 0), sigma))
         m, s, ok = misfit_of(img.astype(np.float32), s)
         keep &= ok
@@ -234,10 +210,7 @@ def _measure(
     if per.shape[1] < MIN_EDGES:
         return Blur()
     cost = _trimmed(per)
-    at = int(np.argmin(cost))
-    if (at == 0 and grid[0] > 0.0) or (at == len(grid) - 1 and grid[-1] < BLUR_GRID_PX[-1]):
-        return None  # the minimum may lie outside the window
-    best = Blur(grid_vertex(cost, at, grid))
+    best = Blur(grid_vertex(cost, int(np.argmin(cost)), BLUR_GRID_PX))
     if not streaks or best.sigma_px < STREAK_SEARCH_PX:
         return best
 
