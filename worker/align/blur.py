@@ -34,13 +34,8 @@ import numpy as np
 from numpy.typing import NDArray
 
 from worker.align.edges import detect_edge_points, normal_shift, profile_grid, profiles
-from worker.engine.images import FloatImage, srgb_decode, srgb_encode, to_grey
-from worker.engine.photometry import (
-    ToneCurve,
-    local_normalise_f,
-    on_render_scale,
-    reference_tone_curve,
-)
+from worker.engine.images import FloatImage, srgb_encode
+from worker.engine.photometry import local_normalise_f
 
 Array = NDArray[np.float64]
 
@@ -65,11 +60,6 @@ STREAK_STEP_RAD = np.pi / 16
 STREAK_MIN_PX = 0.6
 #: A streak is kept when its profiles' misfit is under this share of the single σ's.
 STREAK_GAIN = 0.8
-#: The blur and the tone curve are measured in turn (:func:`blur_and_tone`) until the blur
-#: moves less than BLUR_TONE_TOL_PX (blur_change_px), at most BLUR_TONE_ROUNDS times after the
-#: first measurement (then the curve is fitted with the last one).
-BLUR_TONE_TOL_PX = 0.01
-BLUR_TONE_ROUNDS = 2
 
 
 @dataclass(frozen=True)
@@ -90,46 +80,8 @@ class Blur:
         if self.streak_px > 0.0:
             img = cv2.filter2D(img, -1, streak_kernel(self.streak_px, self.angle_rad))
         if self.sigma_px > BLUR_MIN_PX:
-            # OpenCV samples the Gaussian at whole pixels: below ~0.6 px it spreads less than
-            # σ (σ 0.25 → 0.03 px, 0.4 → 0.28, 0.5 → 0.46; exact from 0.75), here and on the
-            # measuring grid alike. Kernels of the exact variance were tried and not kept
-            # (bench/README.md, "The blur's Gaussian on the pixel grid").
             img = cv2.GaussianBlur(img, (0, 0), self.sigma_px)
         return img
-
-
-def blur_and_tone(
-    ref_image: FloatImage, render_linear: FloatImage, start: Blur | None = None
-) -> tuple[Blur, ToneCurve, FloatImage]:
-    """The reference's blur relative to the render, its tone curve onto the render's scale,
-    and the reference in the render's linear units through that curve; ``start``: the blur
-    to begin from (the last feature set's at this level), else none.
-
-    Each is measured with the other. Blur acts on light, so it is measured in linear units,
-    on the reference through the curve; the curve is fitted against the render at the
-    reference's sharpness, for against the sharp render the light a softer reference spreads
-    into the render's flat dark parts bends the curve's foot (dark levels mapped 10-15 % too
-    low: a gamma; corners moved outwards 0.055 px at σ = 1 px: Aura started at the truth ended
-    up to 0.49° off, 0.069° with the refit). A blur measured through that bent curve is off
-    too: σ = 1 px came out 0.90 (the bench's ISS under `defocus`, which then ended 0.03-0.05°
-    from the truth it started at); through the curve fitted with it, 0.99, and 0.008-0.021°
-    (bench/README.md, "The blur measured through its own tone curve"). So the two are measured
-    in turn until the blur moves less than BLUR_TONE_TOL_PX; from the last set's blur that is
-    one curve and one blur, as many as one set measured before."""
-    grey = to_grey(render_linear)
-    blur = start if start is not None else Blur()
-    for round_ in range(BLUR_TONE_ROUNDS + 2):
-        curve = reference_tone_curve(ref_image, blur.apply(render_linear))
-        ref_linear = srgb_decode(on_render_scale(ref_image, curve))
-        if round_ == BLUR_TONE_ROUNDS + 1:
-            break
-        again = measure_blur(ref_linear, grey)
-        if not again.active and not blur.active:
-            return again, curve, ref_linear  # no blur: the curve is the sharp render's
-        if blur_change_px(again, blur) < BLUR_TONE_TOL_PX:
-            break  # the blur the curve was fitted with stands
-        blur = again
-    return blur, curve, ref_linear
 
 
 def blur_change_px(a: Blur, b: Blur) -> float:

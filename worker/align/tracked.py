@@ -21,7 +21,7 @@ import cv2
 import numpy as np
 from numpy.typing import NDArray
 
-from worker.align.blur import Blur, blur_and_tone, blur_change_px, measure_blur
+from worker.align.blur import Blur, blur_change_px, measure_blur
 from worker.align.edges import detect_edge_points, normal_shift
 from worker.align.features import detect_corners, match_features, structure_whitening, track
 from worker.align.reflectance import fit_law, is_lambert, lambertised, law_angles, smoothness
@@ -38,6 +38,7 @@ from worker.engine.photometry import (
     normalise_render,
     normalised_to_u8,
     on_render_scale,
+    reference_tone_curve,
 )
 
 Array = NDArray[np.float64]
@@ -77,25 +78,28 @@ class TrackedFeatures:
         self._normalised_view: tuple[RenderedView, Array, NDArray[np.uint8], Array] | None = None
         pair = normalise_pair(session.ref_grey, view.grey)
         mask = content_mask(pair.ref_smooth) & content_mask(pair.render_smooth)
-        # The reference's tone curve is mapped onto the render's (contrast normalisation
+        # The reference's tone curve is mapped onto the render's first: contrast normalisation
         # removes local gain and offset but not a different gamma, which shifts every blurred
-        # edge towards its dark side), and the render is blurred to the reference's sharpness
-        # (a corner blurred differently in the two images sits elsewhere): each measured with
-        # the other (:func:`blur_and_tone`).
+        # edge towards its dark side.
         #: The curve, kept for the sets carried from this one (a camera's response does not
         #: change from frame to frame; fitting it again costs more than the rest of a frame).
-        last = getattr(session, "last_stage", None)  # a set made before at this level: its
-        start = None  # blur is where this one's measurement starts
-        if last is not None and last.level == view.level:
-            start = getattr(last.features, "blur", None)
-        self.blur, self.tone_curve, ref_linear = blur_and_tone(
-            session.ref_image, view.linear, start
-        )
+        self.tone_curve = reference_tone_curve(session.ref_image, view.linear)
+        ref_linear = srgb_decode(on_render_scale(session.ref_image, self.tone_curve))
+        # Equal sharpness too: a corner blurred differently in the two images sits elsewhere.
+        # Blur acts on light, so it is measured and applied in linear units, then encoded.
+        self.blur = measure_blur(ref_linear, to_grey(view.linear))
         #: Whether a tracker's carried sets measure the blur again (see _blur_again): True
         #: for a streak (motion blur), None (not known yet) for another blur, False for none.
         self.smeared: bool | None = False
         if self.blur.active:
             self.smeared = True if self.blur.streak_px > 0.0 else None
+            # The curve again, against the render at the reference's sharpness: against the
+            # sharp one, the light a softer reference spreads into the render's flat dark parts
+            # bent the curve's foot (dark levels mapped 10-15 % too low: a gamma) and moved
+            # corners outwards (0.055 px at σ = 1 px; Aura started at the truth ended up to 0.49°
+            # off, 0.069° with the refit).
+            self.tone_curve = reference_tone_curve(session.ref_image, self.blur.apply(view.linear))
+            ref_linear = srgb_decode(on_render_scale(session.ref_image, self.tone_curve))
         # The reflectance law: a regolith that does not darken towards the limb as Lambert
         # does bends every shading feature of an untextured body (worker.align.reflectance).
         #: Its Lommel–Seeliger share and Oren–Nayar c, kept for the sets carried from this one

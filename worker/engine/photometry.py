@@ -78,8 +78,8 @@ def fit_tone_curve(
     image instead would flatten the curve (regression dilution) and bend every edge. Unlike
     histogram matching, a few occluded pixels do not bend it either. A difference in sharpness
     does: the light a softer reference spreads into the render's flat dark parts lowers the
-    curve's foot, so the render should be at the reference's sharpness
-    (worker.align.blur.blur_and_tone measures the two in turn).
+    curve's foot, so the render should be at the reference's sharpness (worker.align.tracked
+    fits the curve again once it has measured the blur).
     """
     a = cv2.GaussianBlur(reference.astype(np.float32), (0, 0), TONE_SMOOTH_PX)
     b = cv2.GaussianBlur(render.astype(np.float32), (0, 0), TONE_SMOOTH_PX)
