@@ -80,6 +80,10 @@ class Blur:
         if self.streak_px > 0.0:
             img = cv2.filter2D(img, -1, streak_kernel(self.streak_px, self.angle_rad))
         if self.sigma_px > BLUR_MIN_PX:
+            # OpenCV samples the Gaussian at whole pixels: below ~0.6 px it spreads less than
+            # σ (σ 0.25 → 0.03 px, 0.4 → 0.28, 0.5 → 0.46; exact from 0.75), here and on the
+            # measuring grid alike. Kernels of the exact variance were tried and not kept
+            # (bench/README.md, "The blur on the pixel grid and through the tone curve").
             img = cv2.GaussianBlur(img, (0, 0), self.sigma_px)
         return img
 
