@@ -13,6 +13,8 @@ Conventions (also stated in bench/README.md):
   over the cases.
 - The range error is signed (> 0: the estimate is farther than the truth); its median over a
   group, from the offsets and from the truth, shows a scale bias the sizes of the errors hide.
+  From the offsets it is over the estimates that returned (a failure has no signed range);
+  from the truth a failure counts 0, as in the other drift columns.
 - Cost statistics (iterations, renders) are over the estimates that returned; wall seconds
   are over all of them (a failure costs time too).
 - Percentiles interpolate linearly (numpy's default); with few cases p90 is near the maximum.
