@@ -3,6 +3,7 @@ estimate in test_estimate.py (test_default_estimate_fits_the_sun)."""
 
 from __future__ import annotations
 
+import contextlib
 from types import SimpleNamespace
 
 import numpy as np
@@ -76,3 +77,47 @@ def test_clip_caps_the_tilt_and_the_prior_pulls_back() -> None:
     # A step of -ab on the tilt zeroes the prior's residual: it pulls towards the request.
     np.testing.assert_allclose(rp - Jp @ np.r_[np.zeros(6), -sun.ab], 0.0, atol=1e-12)
     assert Jp[0, 6] == Jp[1, 7] == PRIOR_PX_PER_RAD
+
+
+def _scripted_session(sun_dir: tuple[float, float, float]):  # noqa: ANN202
+    """A session whose renders record the sun they were made under, and a ``measure`` that
+    scripts three features: 0 moves with the sun's tilt along e1, 1 is geometry (never
+    moves), 2 is found only under the requested sun (a shadow edge a tilt moves away)."""
+    asked = LightingSpec(sun_dir, 3.0, 0.02)
+    renderer = _Renderer(asked)
+    session = SimpleNamespace(
+        requested_lighting=asked,
+        renderer=renderer,
+        options=SimpleNamespace(min_features=2, reuse_jacobian=True),
+        timed=lambda part: contextlib.nullcontext(),
+        render_view=lambda R, t: SimpleNamespace(sun=np.asarray(renderer.lighting.sun_direction)),
+    )
+    tilt = SunTilt(session)  # type: ignore[arg-type]
+
+    def measure(view: SimpleNamespace, guess: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:
+        a = float(view.sun @ tilt.e1)  # the tilt along e1 (radians, small)
+        h = np.array([[100.0 + 50.0 * a, 40.0], [60.0, 80.0], [20.0, 30.0]])
+        found = np.array([True, True, abs(float(view.sun @ tilt.s0) - 1.0) < 1e-12])
+        return h, found
+
+    return session, tilt, measure
+
+
+def test_features_a_tilted_sun_loses_get_no_sun_motion_and_leave_the_fit() -> None:
+    from worker.align.refine import StageState, _ready_state
+
+    session, tilt, measure = _scripted_session((0.48, -0.36, -0.8))
+    view = SimpleNamespace(R=np.eye(3), t=np.zeros(3))
+    h, ok = measure(session.render_view(None, None), None)
+    Js, seen = tilt.jacobian(measure, view, h, ok)  # type: ignore[arg-type]
+    assert seen.tolist() == [True, True, False]
+    assert Js[0, 0] == pytest.approx(50.0, rel=1e-3) and abs(Js[0, 1]) < 1e-3  # moves along e1
+    assert not Js[2:4].any() and not Js[4:6].any()  # geometry: no motion; lost: no rows
+    # the stage's fit keeps the feature the sun moves and the geometric one, not the lost one
+    st = StageState(SimpleNamespace(measure=measure), h, ok, learned=object(), learned_at=view)  # type: ignore[arg-type]
+    st = _ready_state(session, st, "klt", view, tilt)  # type: ignore[arg-type]
+    assert st.ok.tolist() == [True, True, False] and st.sun_J is not None
+    # unless that would leave fewer features than the fit needs: then all stay
+    session.options.min_features = 3
+    st = StageState(SimpleNamespace(measure=measure), h, ok, learned=object(), learned_at=view)  # type: ignore[arg-type]
+    assert _ready_state(session, st, "klt", view, tilt).ok.tolist() == [True, True, True]  # type: ignore[arg-type]

@@ -225,7 +225,12 @@ def _ready_state(
         st.learned_at = view
     if sun is not None and st.sun_J is None:
         with session.timed("jacobian"):
-            st.sun_J = sun.jacobian(st.features.measure, view, st.h, st.ok)
+            st.sun_J, seen = sun.jacobian(st.features.measure, view, st.h, st.ok)
+        # A feature a 2° tilt of the sun loses is made by shading (a shadow edge, a terminator):
+        # with zero sun columns the fit would read its shading-made offset as pose (over terrain
+        # at a low sun a quarter of them; bench/README.md, "Features the sun's tilt loses").
+        if (st.ok & seen).sum() >= opts.min_features:
+            st.ok = st.ok & seen
     return st
 
 

@@ -84,11 +84,13 @@ class SunTilt:
 
     def jacobian(
         self, measure: Measure, view: RenderedView, h: Array, ok: NDArray[np.bool_]
-    ) -> Array:
-        """Image motion of each feature per radian of tilt along e1 and e2, (2k, 2).
+    ) -> tuple[Array, NDArray[np.bool_]]:
+        """Image motion of each feature per radian of tilt along e1 and e2, (2k, 2), and which
+        features both tilted renders show.
 
         ``measure(view, guess)`` finds the features in a render. A feature lost in a tilted
-        render gets zero rows (no known motion), as do those not found at the current pose.
+        render gets zero rows (no known motion), as do those not found at the current pose;
+        the refinement leaves the lost ones out of its fit (worker.align.refine._ready_state).
         """
         step = np.tan(np.radians(TILT_STEP_DEG))
         cols = []
@@ -103,7 +105,7 @@ class SunTilt:
         self.set(base)
         Js = np.column_stack(cols)
         Js[~np.repeat(keep, 2)] = 0.0
-        return Js
+        return Js, keep
 
 
 def step_with_sun(J: Array, r: Array, lam: float, w: Array, sun: SunTilt | None) -> Array:
