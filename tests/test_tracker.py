@@ -7,6 +7,7 @@ from __future__ import annotations
 import json
 import shutil
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pytest
@@ -162,20 +163,37 @@ def test_a_frame_that_learns_its_jacobian_again_solves_for_the_sun_again(
     small target some frames are lost and re-initialised (which learns afresh), and which ones
     depends on the CPU (at 3.5° a frame and 6°, on an AMD EPYC VM frames 1 and 3 were, and no
     frame had turned 6° since its rows were learned)."""
+    import worker.align.tracker as tracker_module
     from schemas.camera import Camera
+    from worker.align.session import Session
     from worker.align.tracker import Tracker
     from worker.bench.sequences import Motion, make_sequence
 
     monkeypatch.setattr("worker.align.tracker.RELEARN_ROTATION_DEG", 3.0)
+    # Whether each sun fit a relearning runs takes a step (the real stage, observed): a frame
+    # whose rows were learned where the fit already sits rejects both trials and keeps the sun.
+    sun_steps: list[bool] = []
+    real_stage = tracker_module.run_lm_stage
+
+    def observed(session: Session, *args: Any, fit_sun: bool = False, **kwargs: Any) -> str:
+        before = len(session.history)
+        out = real_stage(session, *args, fit_sun=fit_sun, **kwargs)
+        if fit_sun:
+            sun_steps.append(any(r.accepted for r in session.history[before:]))
+        return out
+
+    monkeypatch.setattr("worker.align.tracker.run_lm_stage", observed)
 
     motion = Motion("turning", spin_deg=2.0, closing=0.0)
     seq = make_sequence(demo_model, Camera(**CAMERA), motion, 7, 11, "sun", fill=0.9)
     assert seq.request.options.fit_sun and seq.request.lighting is not None
     asked = seq.request.lighting.sun_direction
     tracker = Tracker(demo_model, seq.request)
-    suns, status, unknowns = [], [], []
+    suns, status, unknowns, stepped = [], [], [], []
     for frame, truth in zip(seq.frames, seq.truths, strict=True):
+        fits = len(sun_steps)
         result = tracker.track(frame.astype(np.float32) / 255.0, truth)
+        stepped.append(any(sun_steps[fits:]))
         status.append("relearned" if result.relearned else result.status)
         memory = tracker._memory
         assert memory is not None, status
@@ -199,5 +217,10 @@ def test_a_frame_that_learns_its_jacobian_again_solves_for_the_sun_again(
             assert unknowns[k] == 8, (k, status, unknowns)
         elif status[k] == "tracked":
             assert unknowns[k] == 6 and moved[k - 1] == 0.0, (k, status, unknowns, moved)
-    # The request's sun is 4° off: solved again, the tilt moves.
-    assert any(moved[k - 1] > 1e-4 for k in range(1, len(suns)) if status[k] == "relearned")
+    # The request's sun is 4° off: solved again, a step the fit takes moves the tilt (on an
+    # Intel Xeon VM one relearning took one; on an AMD EPYC VM both relearnings rejected both
+    # trials, their cost already 0.002 px², and kept the sun).
+    relearned = [k for k in range(1, len(suns)) if status[k] == "relearned"]
+    assert len(sun_steps) >= len(relearned), (sun_steps, status)
+    for k in relearned:
+        assert (moved[k - 1] > 1e-4) == stepped[k], (k, moved, stepped, status)
