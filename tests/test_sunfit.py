@@ -113,11 +113,15 @@ def test_features_a_tilted_sun_loses_get_no_sun_motion_and_leave_the_fit() -> No
     assert seen.tolist() == [True, True, False]
     assert Js[0, 0] == pytest.approx(50.0, rel=1e-3) and abs(Js[0, 1]) < 1e-3  # moves along e1
     assert not Js[2:4].any() and not Js[4:6].any()  # geometry: no motion; lost: no rows
+
+    def ready() -> StageState:
+        """A stage's state with its rows learned at ``view``, made ready with the sun."""
+        st = StageState(SimpleNamespace(measure=measure), h, ok, learned=object(), learned_at=view)  # type: ignore[arg-type]
+        return _ready_state(session, st, "klt", view, tilt)  # type: ignore[arg-type]
+
     # the stage's fit keeps the feature the sun moves and the geometric one, not the lost one
-    st = StageState(SimpleNamespace(measure=measure), h, ok, learned=object(), learned_at=view)  # type: ignore[arg-type]
-    st = _ready_state(session, st, "klt", view, tilt)  # type: ignore[arg-type]
+    st = ready()
     assert st.ok.tolist() == [True, True, False] and st.sun_J is not None
     # unless that would leave fewer features than the fit needs: then all stay
     session.options.min_features = 3
-    st = StageState(SimpleNamespace(measure=measure), h, ok, learned=object(), learned_at=view)  # type: ignore[arg-type]
-    assert _ready_state(session, st, "klt", view, tilt).ok.tolist() == [True, True, True]  # type: ignore[arg-type]
+    assert ready().ok.tolist() == [True, True, True]
