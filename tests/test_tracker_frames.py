@@ -4,13 +4,15 @@ previous frame's and what it sets for itself."""
 from __future__ import annotations
 
 from dataclasses import replace
+from types import SimpleNamespace
 
 import numpy as np
-from test_refine import R0, T0, make_session
+from test_refine import R0, T0, K, linear_problem, make_session  # noqa: F401 (a fixture)
 
 from schemas.camera import Camera
 from schemas.estimate import EstimateRequest
 from schemas.pose import Pose
+from worker.align.refine import StageState, run_lm_stage
 from worker.align.session import Session
 from worker.align.tracker import (
     FRAME_ITERATIONS,
@@ -20,6 +22,8 @@ from worker.align.tracker import (
     VELOCITY_FRAMES,
     FrameResult,
     Tracker,
+    _Memory,
+    mispredicted,
 )
 from worker.engine.metrics import rotation_error_deg
 from worker.engine.posemath import axis_angle_to_matrix
@@ -149,3 +153,41 @@ def test_a_frame_that_lost_half_its_features_learns_again_instead_of_being_lost(
     assert tracker._lost("max_iterations", 0.995, 100, 100)
     assert tracker._lost("linear_step", 0.80, 100, 100)
     assert tracker._lost("linear_step", 0.98, 100, 100)  # 5 × the last frames' misalignment
+
+
+def test_a_trial_the_rows_mispredict_is_told_from_a_stop_without_one(
+    linear_problem: list[np.ndarray],  # noqa: F811 (the fixture imported above)
+) -> None:
+    """The real stage on an exactly linear problem: with the right rows every trial is accepted
+    and the stage stops without one (a record unaccepted, but with its step); with rows of the
+    wrong sign the first trial raises the cost and is rejected (unaccepted, no step)."""
+    session = make_session()
+    run_lm_stage(session, "klt", "refine")
+    assert session.history[-1].accepted is False and session.history[-1].step_norm > 0.0
+    assert not mispredicted(session)
+    linear_problem[0] = np.array(-1.0)
+    session = make_session()
+    run_lm_stage(session, "klt", "refine")
+    assert any(r.step_norm == 0.0 and not r.accepted for r in session.history)
+    assert mispredicted(session)
+
+
+def test_a_frame_whose_rows_mispredicted_a_trial_learns_them_afresh() -> None:
+    """Tracker._keep: a frame that neither turned far nor lost features keeps its rows, unless
+    its LM rejected a trial; then it learns rows and features afresh (the fresh set stubbed:
+    learning it is the real tracker's, tests/test_tracker.py)."""
+    ok = np.ones(K, dtype=bool)
+    carried = StageState(SimpleNamespace(smeared=False), np.zeros((K, 2)), ok)  # type: ignore[arg-type]
+    fresh = StageState(SimpleNamespace(smeared=False), np.zeros((K, 2)), ok)  # type: ignore[arg-type]
+    tracker = Tracker.__new__(Tracker)
+    tracker._fresh = lambda session: fresh  # type: ignore[method-assign]
+    for rejected in (False, True):
+        session = make_session()  # fit_sun off: no sun fit after learning afresh
+        session.last_stage = carried
+        session.record("refine", 0.01, 1e-4, 1e-3, True, K)  # an accepted trial
+        if rejected:
+            session.record("refine", 0.01, 0.0, 1e-2, False, K)
+        memory = _Memory(carried, (R0, T0), K, session)
+        assert tracker._keep(session, memory, K) is rejected
+        assert tracker._memory is not None
+        assert tracker._memory.state is (fresh if rejected else carried)

@@ -10,10 +10,11 @@ LINEAR_STEP_PX or more (a smaller step is taken on the linear model: its trial w
 re-measure the features), not a full estimate.
 The learned-Jacobian LM stays the core: the rows are the paper's, learned from perturbed
 renders, and learned again (with the features made afresh) once the attitude has turned
-RELEARN_ROTATION_DEG from where they were learned or too few features are left. A frame that
-learns them again also solves for the sun's tilt again (with options.fit_sun), from the
-features made there: the tilt the first frame fitted is only as good as what that view's
-shading showed, and as the target turns other shading features come in that it misplaces.
+RELEARN_ROTATION_DEG from where they were learned, too few features are left, or the LM
+rejected a trial (the rows mispredicted the render). A frame that learns them again also solves
+for the sun's tilt again (with options.fit_sun), from the features made there: the tilt the
+first frame fitted is only as good as what that view's shading showed, and as the target turns
+other shading features come in that it misplaces.
 
 A frame's renders render only a window around the target, pasted onto the sky
 (worker.align.skywindow).
@@ -33,13 +34,14 @@ from dataclasses import dataclass, field
 import numpy as np
 from numpy.typing import NDArray
 
-from schemas.estimate import Covariance, Errors, EstimateRequest
+from schemas.estimate import EstimateRequest
 from worker.align.estimator import MIN_CONVERGED_SCORE, covariance_of, errors_between, estimate
 from worker.align.learning import LearnedJacobian, learn_at_pose
 from worker.align.refine import StageState, run_lm_stage
 from worker.align.session import CancelCheck, Session
 from worker.align.skywindow import sky_window
 from worker.align.tracked import TrackedFeatures, law_misplaced, work_box
+from worker.align.trackresult import FrameResult
 from worker.engine.exceptions import ProxposeError, TooFewFeaturesError
 from worker.engine.images import FloatImage, check_size, to_grey
 from worker.engine.meshes import LoadedModel
@@ -111,29 +113,6 @@ Pose = tuple[Array, Array]
 
 
 @dataclass
-class FrameResult:
-    """One frame's outcome."""
-
-    index: int
-    R: Array
-    t: Array
-    status: str  # tracked | reinitialised | lost
-    converged: bool
-    seconds: float
-    renders: int
-    render_cost: float
-    alignment_score: float
-    features: int
-    covariance: Covariance | None = None
-    errors: Errors | None = None
-    relearned: bool = False
-    reason: str = ""  # the LM's stop rule (a full estimate's reason for a re-initialised frame)
-
-    def pose_json(self) -> dict[str, object]:
-        return pose_to_schema(self.R, self.t).model_dump()
-
-
-@dataclass
 class _Memory:
     """What a frame hands to the next."""
 
@@ -146,6 +125,16 @@ class _Memory:
     def learned_here(cls, state: StageState, session: Session) -> _Memory:
         """``state``, its Jacobian learned at ``session``'s pose."""
         return cls(state, (session.R, session.t), int(state.ok.sum()), session)
+
+
+def mispredicted(session: Session) -> bool:
+    """Whether the frame's LM rejected a trial (recorded unaccepted and without a step): the
+    carried rows promised a cost the render did not show. Rows learned where the target looked
+    otherwise can fit a pose degrees off along a weakly seen rotation (an Aura tumble at 2° a
+    frame: frame 1 ended 1.56° off at a feature cost of 0.0017 px²); rows and features made
+    afresh there moved it back to 0.33° (bench/README.md, "A rejected trial learns the rows
+    again")."""
+    return any(not r.accepted and r.step_norm == 0.0 for r in session.history)
 
 
 class Tracker:
@@ -349,13 +338,15 @@ class Tracker:
 
     def _keep(self, session: Session, memory: _Memory, fitted: int) -> bool:
         """Remember this frame's state for the next; learn the Jacobian afresh (with new
-        features) when the attitude has turned far since, or too few features are left, and
-        then solve for the sun's tilt again too, the pose with it (measured: bench/README.md,
-        "The sun solved again at each relearning")."""
+        features) when the attitude has turned far since, too few features are left, or the
+        rows mispredicted a trial (:func:`mispredicted`), and then solve for the sun's tilt
+        again too, the pose with it (measured: bench/README.md, "The sun solved again at each
+        relearning", "A rejected trial learns the rows again")."""
         st = session.last_stage
         turned = rotation_error_deg(memory.learned_pose[0], session.R)
         left = min(int(st.ok.sum()), fitted)  # fitted: the features the frame's fit used
-        if turned < RELEARN_ROTATION_DEG and left >= MIN_KEPT_FRACTION * memory.learned_features:
+        fresh_due = mispredicted(session) or turned >= RELEARN_ROTATION_DEG
+        if not fresh_due and left >= MIN_KEPT_FRACTION * memory.learned_features:
             self._memory = _Memory(st, memory.learned_pose, memory.learned_features, session)
             return False
         fresh = self._fresh(session)
