@@ -62,8 +62,9 @@ def test_track_writes_frames_in_order_and_recovers_from_a_lost_frame(
     assert [f.index for f in result.frames] == list(range(N_FRAMES))
     status = [f.status for f in result.frames]
     assert status[0] == "reinitialised"  # the first frame is a full estimate
-    # The second starts a whole frame behind (no velocity yet): when its LM does not converge
-    # in the frame's iterations it is re-initialised too.
+    # The second starts a whole frame behind (no velocity yet): when its LM is still moving
+    # after the frame's iterations it learns afresh and goes on, and is re-initialised when
+    # that does not converge either.
     assert status[1] in ("tracked", "reinitialised"), status
     assert all(s == "tracked" for s in status[2:DROPOUT]), status
     assert status[DROPOUT] == "lost", status  # nothing to see: detected, the prediction stands
@@ -228,3 +229,46 @@ def test_a_frame_that_learns_its_jacobian_again_solves_for_the_sun_again(
     assert len(sun_steps) >= len(relearned), (sun_steps, status)
     for k in relearned:
         assert (moved[k - 1] > 1e-4) == stepped[k], (k, moved, stepped, status)
+
+
+@pytest.mark.slow
+def test_a_frame_still_moving_when_its_iterations_run_out_goes_on_from_fresh_rows(
+    demo_model: LoadedModel, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """A tracked frame whose LM stopped still moving (its iterations ran out) but whose render
+    aligns learns its rows afresh where it got to and goes on (Tracker._relearn), a tracked
+    frame, not a full estimate. Here every frame's first pass may take one trial only, and the
+    target turns 2° a frame, so the frames that start behind run out."""
+    from schemas.camera import Camera
+    from worker.align.session import Session
+    from worker.align.tracker import CONVERGED, UNFINISHED, Tracker
+    from worker.bench.sequences import Motion, make_sequence
+
+    first: list[str] = []  # the first pass's stop rule, per tracked frame
+    real_lm = Tracker._lm
+
+    def one_trial(session: Session, state: Any) -> str:
+        session.options = session.options.model_copy(update={"max_iterations": 1})
+        first.append(real_lm(session, state))
+        return first[-1]
+
+    monkeypatch.setattr(Tracker, "_lm", staticmethod(one_trial))
+    motion = Motion("turning", spin_deg=2.0, closing=0.05)
+    seq = make_sequence(demo_model, Camera(**CAMERA), motion, 5, 17, "tone", fill=0.9)
+    tracker = Tracker(demo_model, seq.request)
+    went_on = 0
+    for k, (frame, truth) in enumerate(zip(seq.frames, seq.truths, strict=True)):
+        passes = len(first)
+        result = tracker.track(frame.astype(np.float32) / 255.0, truth)
+        if k == 0 or first[passes] not in UNFINISHED:
+            continue
+        # still moving after one trial: went on, and a tracked frame when that converged
+        assert result.status in ("tracked", "reinitialised"), (k, result.status)
+        if result.status == "tracked":
+            went_on += 1
+            assert result.relearned and result.reason in CONVERGED, (k, result.reason)
+            assert result.errors is not None and result.errors.rotation_deg < 1.0, result.errors
+            memory = tracker._memory
+            assert memory is not None
+            np.testing.assert_allclose(memory.learned_pose[0], result.R, atol=1e-12)
+    assert went_on >= 1, first

@@ -22,9 +22,8 @@ from worker.align.tracker import (
     VELOCITY_FRAMES,
     FrameResult,
     Tracker,
-    _Memory,
-    mispredicted,
 )
+from worker.align.trackmemory import Memory, mispredicted
 from worker.engine.metrics import rotation_error_deg
 from worker.engine.posemath import axis_angle_to_matrix
 
@@ -187,7 +186,7 @@ def test_a_frame_whose_rows_mispredicted_a_trial_learns_them_afresh() -> None:
         session.record("refine", 0.01, 1e-4, 1e-3, True, K)  # an accepted trial
         if rejected:
             session.record("refine", 0.01, 0.0, 1e-2, False, K)
-        memory = _Memory(carried, (R0, T0), K, session)
+        memory = Memory(carried, (R0, T0), K, session)
         assert tracker._keep(session, memory, K) is rejected
         assert tracker._memory is not None
         assert tracker._memory.state is (fresh if rejected else carried)

@@ -9,27 +9,23 @@ at the prediction, and a trial only when the LM's step from there moves some fea
 LINEAR_STEP_PX or more (a smaller step is taken on the linear model: its trial would only
 re-measure the features), not a full estimate.
 The learned-Jacobian LM stays the core: the rows are the paper's, learned from perturbed
-renders, and learned again (with the features made afresh) once the attitude has turned
-RELEARN_ROTATION_DEG from where they were learned, too few features are left, or the LM
-rejected a trial (the rows mispredicted the render). A frame that learns them again also solves
-for the sun's tilt again (with options.fit_sun), from the features made there: the tilt the
-first frame fitted is only as good as what that view's shading showed, and as the target turns
-other shading features come in that it misplaces.
+renders, and learned again (features made afresh, the sun's tilt solved again with
+options.fit_sun: as the target turns, shading features come in that the first fit misplaces)
+once the attitude has turned RELEARN_ROTATION_DEG from where they were learned, too few features
+are left, or the LM rejected a trial (the rows mispredicted the render). A frame's renders
+render only a window around the target, pasted onto the sky (worker.align.skywindow).
 
-A frame's renders render only a window around the target, pasted onto the sky
-(worker.align.skywindow).
-
-Each frame is refereed: an LM that does not converge, a last render that explains the image
-poorly (alignment score below MIN_TRACK_SCORE, or far below the last frames') or too few
-features (MIN_TRACKED_FRACTION) mark it lost, and the tracker re-initialises with a full
-estimate ('reinitialised'), from where the LM got to when that still aligns, else from the
-prediction; when that fails too, the frame is 'lost' and the prediction stands.
+Each frame is refereed: a last render that explains the image poorly (alignment score below
+MIN_TRACK_SCORE, or far below the last frames') or too few features (MIN_TRACKED_FRACTION) mark
+it lost, and so does an LM that does not converge, once more after learning afresh when it was
+only still moving (UNFINISHED). The tracker then re-initialises with a full estimate
+('reinitialised'), from where the LM got to when that still aligns, else from the prediction;
+when that fails too, the frame is 'lost' and the prediction stands.
 """
 
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass, field
 
 import numpy as np
 from numpy.typing import NDArray
@@ -41,6 +37,7 @@ from worker.align.refine import StageState, run_lm_stage
 from worker.align.session import CancelCheck, Session
 from worker.align.skywindow import sky_window
 from worker.align.tracked import TrackedFeatures, law_misplaced, work_box
+from worker.align.trackmemory import Memory, mispredicted
 from worker.align.trackresult import FrameResult
 from worker.engine.exceptions import ProxposeError, TooFewFeaturesError
 from worker.engine.images import FloatImage, check_size, to_grey
@@ -108,33 +105,14 @@ VELOCITY_FRAMES = 3
 
 #: The LM's stop rules that count as converged.
 CONVERGED = ("step_below_epsilon", "cost_converged", "linear_step")
+#: Stop rules of an LM still moving when it stopped (its iterations ran out, or its steps
+#: stopped shrinking). Such a frame that aligns learns its rows afresh where it got to and goes
+#: on (Tracker._relearn), and is lost only when that does not converge either: the full
+#: estimate it got instead took ~3 s, in 13 of the 36 frames after the first of 16 sequences,
+#: and did no better (bench/README.md, "An unfinished frame goes on").
+UNFINISHED = ("max_iterations", "slow")
 
 Pose = tuple[Array, Array]
-
-
-@dataclass
-class _Memory:
-    """What a frame hands to the next."""
-
-    state: StageState
-    learned_pose: Pose  # where the Jacobian was learned
-    learned_features: int  # how many features it was learned for
-    session: Session = field(repr=False)
-
-    @classmethod
-    def learned_here(cls, state: StageState, session: Session) -> _Memory:
-        """``state``, its Jacobian learned at ``session``'s pose."""
-        return cls(state, (session.R, session.t), int(state.ok.sum()), session)
-
-
-def mispredicted(session: Session) -> bool:
-    """Whether the frame's LM rejected a trial (recorded unaccepted and without a step): the
-    carried rows promised a cost the render did not show. Rows learned where the target looked
-    otherwise can fit a pose degrees off along a weakly seen rotation (an Aura tumble at 2° a
-    frame: frame 1 ended 1.56° off at a feature cost of 0.0017 px²); rows and features made
-    afresh there moved it back to 0.33° (bench/README.md, "A rejected trial learns the rows
-    again")."""
-    return any(not r.accepted and r.step_norm == 0.0 for r in session.history)
 
 
 class Tracker:
@@ -153,7 +131,7 @@ class Tracker:
         #: velocity predicted() adds to the last pose.
         self._motions: list[Array] = []
         self._misalignment: list[float] = []
-        self._memory: _Memory | None = None
+        self._memory: Memory | None = None
         #: The request's sun (a full estimate's ``requested_lighting``): the prior of a tracked
         #: frame's sun fit, not the tilted sun the renderer was left with.
         self._requested: LightingSpec | None = None
@@ -192,13 +170,16 @@ class Tracker:
         return 1.0 - score > max(MISALIGNMENT_GROWTH * level, MIN_MISALIGNMENT)
 
     def _lost(self, reason: str, score: float, n_features: int, learned: int) -> bool:
-        """The referee: whether a tracked frame is lost (its LM's stop rule, the alignment
-        score of its last render, and how many of the ``learned`` features it still fits)."""
+        """The referee: whether a tracked frame is lost (its LM's stop rule, :meth:`_holds`)."""
+        return reason not in CONVERGED or not self._holds(score, n_features, learned)
+
+    def _holds(self, score: float, n_features: int, learned: int) -> bool:
+        """Whether a frame's last render explains the image (its alignment score) and it still
+        fits enough of the ``learned`` features."""
         return (
-            reason not in CONVERGED
-            or score < MIN_TRACK_SCORE
-            or self._misaligned(score)
-            or n_features < MIN_TRACKED_FRACTION * learned
+            score >= MIN_TRACK_SCORE
+            and not self._misaligned(score)
+            and n_features >= MIN_TRACKED_FRACTION * learned
         )
 
     def predicted(self) -> Pose:
@@ -238,9 +219,9 @@ class Tracker:
         if st is not None and isinstance(st.features, TrackedFeatures):
             fresh = self._session(session, image, pose, truth)
             try:
-                self._memory = _Memory.learned_here(self._fresh(fresh), fresh)
+                self._memory = Memory.learned_here(self._fresh(fresh), fresh)
             except ProxposeError:  # the estimate's own last set, then
-                self._memory = _Memory.learned_here(st, session)
+                self._memory = Memory.learned_here(st, session)
             renders, cost = renders + fresh.renders, round(cost + fresh.render_cost, 3)
         return FrameResult(
             index, *pose, status, result.converged, time.perf_counter() - start, renders, cost,
@@ -278,11 +259,26 @@ class Tracker:
             score, reason = -1.0, "too_few_features"
         fit = session.fit
         n_features = fit.features if fit is not None else 0
-        if self._lost(reason, score, n_features, memory.learned_features):
-            aligned = score >= MIN_TRACK_SCORE and not self._misaligned(score)
-            guess = (session.R, session.t) if aligned else (R_p, t_p)
+        learned, fresh = memory.learned_features, None
+        if reason in UNFINISHED and self._holds(score, n_features, learned):
+            # Still moving when its iterations ran out, and aligned: learn the rows afresh
+            # where it got to and go on from there (the sun with it), not a full estimate.
+            try:
+                fresh, reason = self._relearn(session, memory.state, always=True)
+            except TooFewFeaturesError:
+                score, reason = -1.0, "too_few_features"
+            else:
+                current = session.current
+                assert current is not None and session.fit is not None
+                score = alignment_score(session.ref_grey, current.grey, work_box(current))
+                n_features, learned = session.fit.features, int(fresh.ok.sum())
+        if self._lost(reason, score, n_features, learned):
+            guess = (session.R, session.t) if self._holds(score, 0, 0) else (R_p, t_p)
             return self._recover(image, guess, truth, index, start)
-        relearned = self._keep(session, memory, n_features)
+        if fresh is not None:
+            self._memory, relearned = Memory.learned_here(fresh, session), True
+        else:
+            relearned = self._keep(session, memory, n_features)
         return FrameResult(
             index, session.R, session.t, "tracked", score >= MIN_CONVERGED_SCORE,
             time.perf_counter() - start, session.renders, round(session.render_cost, 3), score,
@@ -321,7 +317,7 @@ class Tracker:
         session.sky_window = sky_window(self._points, session, guess, keep)
         return session
 
-    def _carry(self, memory: _Memory, session: Session) -> StageState:
+    def _carry(self, memory: Memory, session: Session) -> StageState:
         """The previous frame's features and Jacobian rows, moved into this frame."""
         st = memory.state
         assert st.learned is not None
@@ -336,7 +332,7 @@ class Tracker:
         learned = LearnedJacobian(st.learned.J[rows], st.learned.ok[keep], st.learned.B, 0)
         return StageState(features, h, ok & st.ok[keep], learned, learned_at=view, level=view.level)
 
-    def _keep(self, session: Session, memory: _Memory, fitted: int) -> bool:
+    def _keep(self, session: Session, memory: Memory, fitted: int) -> bool:
         """Remember this frame's state for the next; learn the Jacobian afresh (with new
         features) when the attitude has turned far since, too few features are left, or the
         rows mispredicted a trial (:func:`mispredicted`), and then solve for the sun's tilt
@@ -347,23 +343,36 @@ class Tracker:
         left = min(int(st.ok.sum()), fitted)  # fitted: the features the frame's fit used
         fresh_due = mispredicted(session) or turned >= RELEARN_ROTATION_DEG
         if not fresh_due and left >= MIN_KEPT_FRACTION * memory.learned_features:
-            self._memory = _Memory(st, memory.learned_pose, memory.learned_features, session)
+            self._memory = Memory(st, memory.learned_pose, memory.learned_features, session)
             return False
+        fresh, _ = self._relearn(session, st)
+        self._memory = Memory.learned_here(fresh, session)
+        return True
+
+    def _relearn(
+        self, session: Session, carried: StageState, always: bool = False
+    ) -> tuple[StageState, str]:
+        """Features and rows made afresh at the session's pose, and (with options.fit_sun, or
+        ``always``) an LM pass from them, the sun's tilt solved too with fit_sun; returns them
+        and the pass's stop rule. Without ``always`` a pass short of features leaves the pose."""
         fresh = self._fresh(session)
         # Once frames showed a changing blur, later ones measure it too (TrackedFeatures.smeared).
-        if st.features.smeared:  # type: ignore[union-attr]
-            fresh.features.smeared = True  # type: ignore[union-attr]
-        if session.options.fit_sun:
+        if carried.features.smeared:  # type: ignore[attr-defined]
+            fresh.features.smeared = True  # type: ignore[attr-defined]
+        reason = "cost_converged"
+        if session.options.fit_sun or always:
             session.options = session.options.model_copy(
                 update={"max_iterations": len(session.history) + FRAME_ITERATIONS}
             )
             try:
-                run_lm_stage(session, "klt", "refine", fit_sun=True, state=fresh)
+                reason = run_lm_stage(
+                    session, "klt", "refine", fit_sun=session.options.fit_sun, state=fresh
+                )
             except TooFewFeaturesError:
-                pass  # the sun and the pose stay where the frame put them
+                if always:
+                    raise
             fresh.sun_J = None  # the next frames keep this sun and solve for the pose only
-        self._memory = _Memory.learned_here(fresh, session)
-        return True
+        return fresh, reason
 
     @staticmethod
     def _fresh(session: Session) -> StageState:
