@@ -100,3 +100,35 @@ def test_a_flyaround_keeps_the_target_centred_while_it_turns() -> None:
     assert (
         motion.orbit_deg - motion.spin_deg - 1e-6 <= turns[0] <= motion.orbit_deg + motion.spin_deg
     )
+
+
+@pytest.mark.parametrize(
+    ("status", "relearned", "caught"),
+    [("reinitialised", False, True), ("tracked", True, True), ("tracked", False, False)],
+)
+@pytest.mark.parametrize("off_deg", [0.1, 1.0])
+def test_the_jump_frame_counts_as_caught_when_the_tracker_did_not_just_go_on(
+    status: str, relearned: bool, caught: bool, off_deg: float
+) -> None:
+    """A jump is caught when its frame was re-initialised or learned its rows afresh (a frame
+    still moving after its iterations goes on from fresh rows); a frame that went on with the
+    carried rows did not see it. Followed: within ACCURATE_DEG (0.3°) of the truth."""
+    import numpy as np
+
+    from schemas.track import TrackFrame
+    from worker.align.estimator import errors_between
+    from worker.bench.tracks import SequenceRun
+    from worker.engine.posemath import axis_angle_to_matrix, pose_to_schema
+
+    truth = (np.eye(3), np.array([0.0, 0.0, 100.0]))
+    R = axis_angle_to_matrix(np.array([1.0, 0.0, 0.0]), np.radians(off_deg))
+    frame = TrackFrame(
+        image="f", index=0, pose=pose_to_schema(R, truth[1]), converged=True, status="tracked",
+        seconds=0.1, renders=1, render_cost=0.1, alignment_score=0.99, features=50,
+        errors=errors_between(truth, R, truth[1]),
+    )  # fmt: skip
+    frames = [frame, frame, frame.model_copy(update={"status": status, "relearned": relearned})]
+    jump = SequenceRun("m", "tumble", "rough", "track", frames).row(jump_at=2)["jump"]
+    assert jump["caught"] is caught
+    assert jump["recovered"] is (off_deg < 0.3)
+    assert jump["status"].startswith(status) and ("afresh" in jump["status"]) is relearned

@@ -7,7 +7,9 @@ the previous frame's result, as a user chaining ``proxpose estimate`` would), on
 frames in the same process. Reported per sequence and method: engine seconds per frame
 (median over tracked frames for the tracker), frames per second, renders, per-frame rotation
 and translation errors (median, max), re-initialisations and lost frames, and whether the
-frame after a jump was caught (re-initialised) or followed within the accuracy bound.
+frame after a jump was caught (re-initialised, or a tracked frame that learned its rows afresh:
+one whose LM was still moving after its iterations goes on from fresh rows before a full
+estimate) and followed within the accuracy bound.
 """
 
 from __future__ import annotations
@@ -55,9 +57,10 @@ class SequenceRun:
             f = self.frames[jump_at]
             e = f.errors
             followed = e is not None and e.rotation_deg < ACCURATE_DEG
+            relearned = f.status == "tracked" and f.relearned
             jump = {
-                "status": f.status,
-                "caught": f.status == "reinitialised",
+                "status": f"{f.status}, learned afresh" if relearned else f.status,
+                "caught": f.status == "reinitialised" or relearned,
                 "recovered": followed,
             }
         return {
