@@ -105,11 +105,9 @@ VELOCITY_FRAMES = 3
 
 #: The LM's stop rules that count as converged.
 CONVERGED = ("step_below_epsilon", "cost_converged", "linear_step")
-#: Stop rules of an LM still moving when it stopped (its iterations ran out, or its steps
-#: stopped shrinking). Such a frame that aligns learns its rows afresh where it got to and goes
-#: on (Tracker._relearn), and is lost only when that does not converge either: the full
-#: estimate it got instead took ~3 s, in 13 of the 36 frames after the first of 16 sequences,
-#: and did no better (bench/README.md, "An unfinished frame goes on").
+#: Stop rules of an LM still moving (iterations out, or steps no longer shrinking): a frame that
+#: aligns then learns afresh and goes on (Tracker._relearn) instead of a ~3-s full estimate (on
+#: 16 sequences 18 of them → 5, errors alike; bench/README.md, "An unfinished frame goes on").
 UNFINISHED = ("max_iterations", "slow")
 
 Pose = tuple[Array, Array]
@@ -250,11 +248,7 @@ class Tracker:
                 again.renders += session.renders
                 again.render_cost += session.render_cost
                 session = again
-            # The last render referees the frame: after a linear step it is the step's start,
-            # a fraction of a pixel away.
-            current = session.current
-            assert current is not None
-            score = alignment_score(session.ref_grey, current.grey, work_box(current))
+            score = self._score(session)
         except TooFewFeaturesError:
             score, reason = -1.0, "too_few_features"
         fit = session.fit
@@ -268,10 +262,9 @@ class Tracker:
             except TooFewFeaturesError:
                 score, reason = -1.0, "too_few_features"
             else:
-                current = session.current
-                assert current is not None and session.fit is not None
-                score = alignment_score(session.ref_grey, current.grey, work_box(current))
-                n_features, learned = session.fit.features, int(fresh.ok.sum())
+                assert session.fit is not None
+                score, n_features = self._score(session), session.fit.features
+                learned = int(fresh.ok.sum())
         if self._lost(reason, score, n_features, learned):
             guess = (session.R, session.t) if self._holds(score, 0, 0) else (R_p, t_p)
             return self._recover(image, guess, truth, index, start)
@@ -285,6 +278,13 @@ class Tracker:
             n_features, covariance_of(session), errors_between(truth, session.R, session.t),
             relearned, reason,
         )  # fmt: skip
+
+    @staticmethod
+    def _score(session: Session) -> float:
+        """The referee's alignment score, of the last render (after a linear step: its start)."""
+        current = session.current
+        assert current is not None
+        return alignment_score(session.ref_grey, current.grey, work_box(current))
 
     @staticmethod
     def _lm(session: Session, state: StageState) -> str:
