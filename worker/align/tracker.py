@@ -195,13 +195,10 @@ class Tracker:
         self, image: FloatImage, guess: Pose, truth: Pose | None, index: int, start: float,
         status: str,
     ) -> FrameResult:  # fmt: skip
-        """A full estimate from ``guess``; the next frames go on from features made afresh
-        where it ended and rows learned there. The estimate's own last feature set (made and
-        learned where its last pass began, Broyden-updated since) left the first tracked
-        frames' steps short along a weakly seen rotation: on an Aura approach (`combined`,
-        sequence seed 3001) frames 2-6 ended 0.24-0.41° off after a re-initialised frame 0.055°
-        off; started at its truth, frame 2 ended 0.046° off. With the fresh set, frames 1-6
-        0.02-0.22° (bench/README.md, "A fresh feature set after each full estimate")."""
+        """A full estimate from ``guess``, then a relearning frame's pass (:meth:`_relearn`,
+        rows at TRACK_PERTURBATION_SPP) from features made afresh where it ended; the next frames
+        go on from them (bench/README.md, "A fresh feature set after each full estimate"; "A full
+        estimate finished by a pass from fresh rows": over 0.15° 4 → 0 of 45, ~0.5 s)."""
         request = self.request.model_copy(
             update={"initial_pose": pose_to_schema(*guess), "ground_truth": None}
         )
@@ -211,31 +208,33 @@ class Tracker:
         session = est.session
         assert session is not None
         self._requested = session.requested_lighting
-        result = est.result
-        renders, cost, pose = result.renders, result.render_cost, (session.R, session.t)
+        r = est.result
+        renders, cost, pose = r.renders, r.render_cost, (session.R, session.t)
+        score, n_features, covariance = r.alignment_score, r.features, r.covariance
         st, self._memory = session.last_stage, None
         if st is not None and isinstance(st.features, TrackedFeatures):
             fresh = self._session(session, image, pose, truth)
             try:
-                self._memory = Memory.learned_here(self._fresh(fresh), fresh)
-            except ProxposeError:  # the estimate's own last set, then
+                state, _ = self._relearn(fresh, st, always=True)
+            except ProxposeError:  # the estimate's pose and its own last set, then
                 self._memory = Memory.learned_here(st, session)
+            else:
+                self._memory, pose = Memory.learned_here(state, fresh), (fresh.R, fresh.t)
+                score, covariance = self._score(fresh), covariance_of(fresh)
+                n_features = fresh.fit.features if fresh.fit is not None else n_features
             renders, cost = renders + fresh.renders, round(cost + fresh.render_cost, 3)
         return FrameResult(
-            index, *pose, status, result.converged, time.perf_counter() - start, renders, cost,
-            result.alignment_score, result.features, result.covariance,
-            errors_between(truth, *pose), reason=result.reason,
+            index, *pose, status, r.converged, time.perf_counter() - start, renders, cost,
+            score, n_features, covariance, errors_between(truth, *pose), reason=r.reason,
         )  # fmt: skip
 
     # -- a tracked frame ------------------------------------------------------------------
     def _tracked(
         self, image: FloatImage, truth: Pose | None, index: int, start: float
     ) -> FrameResult:
-        """A frame from the previous one's state; when its LM does not converge, or the referee
-        rejects the frame, a full estimate (:meth:`_recover`), not a second pass from features
-        made where the first stopped: on an ISS approach such a pass "converged" 0.64° off and
-        the velocity carried that to 2.4° in three frames (bench/README.md, "The sun solved
-        again at each relearning")."""
+        """A frame from the previous one's state; when its LM does not converge (after a
+        pass from fresh rows when it was only still moving, UNFINISHED), or the referee rejects
+        the frame, a full estimate (:meth:`_recover`)."""
         memory = self._memory
         assert memory is not None
         R_p, t_p = self.predicted()
