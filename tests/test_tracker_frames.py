@@ -90,6 +90,7 @@ def _scripted_tracker(frames: list[tuple[str, float]]) -> Tracker:
     initial = Pose(t=list(map(float, T0)), quaternion=[1.0, 0.0, 0.0, 0.0])
     tracker.request = EstimateRequest(camera=camera, initial_pose=initial)
     tracker.poses, tracker._motions, tracker._misalignment = [], [], []
+    tracker._last_full = False
     tracker._memory = None  # every frame goes through _full, scripted
     tracker._full = next_frame  # type: ignore[method-assign]
     image = np.zeros((64, 64), np.float32)
@@ -190,3 +191,32 @@ def test_a_frame_whose_rows_mispredicted_a_trial_learns_them_afresh() -> None:
         assert tracker._keep(session, memory, K) is rejected
         assert tracker._memory is not None
         assert tracker._memory.state is (fresh if rejected else carried)
+
+
+def test_a_jump_a_tracked_frame_caught_is_not_a_velocity() -> None:
+    # frame 3 ended 12° past its prediction (a jump caught by learning afresh): the velocity
+    # stays the frames' 1° a frame, instead of a mean with the jump in it (5° a frame)
+    tracker = _scripted_tracker(
+        [("reinitialised", 0.0), ("tracked", 1.0), ("tracked", 2.0), ("tracked", 15.0)]
+    )
+    np.testing.assert_allclose(_predicted_deg(tracker), 16.0, atol=1e-4)
+
+
+def test_two_full_estimates_in_a_row_start_the_velocity_again() -> None:
+    # a jump (frame 3, re-initialised) and another full estimate: the motion between the two
+    # is the velocity now, not the one from before the jump
+    tracker = _scripted_tracker(
+        [
+            ("reinitialised", 0.0),
+            ("tracked", 1.0),
+            ("tracked", 2.0),
+            ("reinitialised", 20.0),
+            ("reinitialised", 23.0),
+        ]
+    )
+    np.testing.assert_allclose(_predicted_deg(tracker), 26.0, atol=1e-4)
+    # unless that motion is a jump too
+    tracker = _scripted_tracker(
+        [("reinitialised", 0.0), ("tracked", 1.0), ("reinitialised", 20.0), ("reinitialised", 40.0)]
+    )
+    np.testing.assert_allclose(_predicted_deg(tracker), 41.0, atol=1e-4)

@@ -5,9 +5,7 @@ from a constant-velocity prediction and keeps the previous frame's features (eac
 the previous image into the new one, starting where the learned Jacobian predicts it moved),
 their learned Jacobian rows (Broyden-updated by every accepted step), the fitted sun, the tone
 curve and the sharpness match (motion blur's streak measured again); so a frame costs a render
-at the prediction, and a trial only when the LM's step from there moves some feature by
-LINEAR_STEP_PX or more (a smaller step is taken on the linear model: its trial would only
-re-measure the features), not a full estimate.
+at the prediction, and a trial only when the LM's step moves a feature by LINEAR_STEP_PX or more.
 The learned-Jacobian LM stays the core: the rows are the paper's, learned from perturbed
 renders, and learned again (features made afresh, the sun's tilt solved again with
 options.fit_sun: as the target turns, shading features come in that the first fit misplaces)
@@ -75,12 +73,9 @@ MIN_TRACKED_FRACTION = 0.25
 RELEARN_ROTATION_DEG = 6.0
 
 #: Samples per pixel (at least) of the perturbation renders a tracked frame learns its Jacobian
-#: from. A tracked frame's single step is only as good as its rows: noise in them shrinks the
-#: Gauss–Newton step along the weakly seen directions (out-of-plane rotation, a few hundredths
-#: of a pixel per 0.1°), and the rest of the error goes on into the velocity. Started 0.2° off
-#: the truth about the camera's x or y axis (Aura tumble, `rough`, frames 4 and 8), one step
-#: from rows learned at 4 spp left 0.055–0.18° along that axis, at 16 spp 0.005–0.075° (rows
-#: from 48 renders at 16 spp, or from the geometry: −0.013–0.065°); at 8 spp the sequences
+#: from: noise in the rows shrinks the step along weakly seen directions, and the rest goes on
+#: into the velocity. Started 0.2° off about the camera's x or y axis (Aura tumble, `rough`),
+#: one step from rows at 4 spp left 0.055–0.18°, at 16 spp 0.005–0.075°; at 8 spp the sequences
 #: drifted again. A relearning costs ~0.5 s more at 512² (13 renders at 256², 16 spp).
 TRACK_PERTURBATION_SPP = 16
 
@@ -91,11 +86,9 @@ TRACK_PERTURBATION_SPP = 16
 #: steps of 0.3–0.5 px still gained 0.1–0.2° from a trial).
 LINEAR_STEP_PX = 0.25
 
-#: Until a frame has been tracked there is no velocity, and the motion into a re-initialised
-#: frame (the first tracked frame was lost: the target moves fast) is taken as one, unless it
-#: turned more than this (a jump). Without it the next frame started a whole frame behind
-#: again: on an Aura tumble of 2° per frame (`combined`, sequence seed 100) frame 1 was lost
-#: and frames 2 and 3 ended 0.56° and 0.54° off, converged.
+#: A motion (or a tracked frame's correction of its prediction) above this is a jump, no
+#: velocity. Before any velocity, the motion into a re-initialised frame is one (without it, on
+#: an Aura tumble of 2° a frame whose frame 1 was lost, frames 2-3 ended 0.56° and 0.54° off).
 FIRST_VELOCITY_MAX_DEG = 6.0
 
 #: Motions averaged into the velocity: an error e_k a frame leaves along a weakly seen direction
@@ -128,6 +121,7 @@ class Tracker:
         #: The motions (increments [δq, δt]) into the last tracked frames: their mean is the
         #: velocity predicted() adds to the last pose.
         self._motions: list[Array] = []
+        self._last_full = False  # whether the last frame was a full estimate
         self._misalignment: list[float] = []
         self._memory: Memory | None = None
         #: The request's sun (a full estimate's ``requested_lighting``): the prior of a tracked
@@ -149,17 +143,26 @@ class Tracker:
         else:
             frame = self._tracked(image, truth, index, start)
         if self.poses and frame.status != "lost":
-            R1, t1 = self.poses[-1]
-            first = not self._motions
-            if frame.status == "tracked" or (
-                first and rotation_error_deg(R1, frame.R) <= FIRST_VELOCITY_MAX_DEG
-            ):
-                motion = increment_between(R1, t1, frame.R, frame.t)
-                self._motions = [*self._motions, motion][-VELOCITY_FRAMES:]
+            self._observe(frame)
+        self._last_full = frame.status == "reinitialised"
         self.poses.append((frame.R, frame.t))
         if frame.status != "lost":
             self._misalignment.append(1.0 - frame.alignment_score)
         return frame
+
+    def _observe(self, frame: FrameResult) -> None:
+        """The velocity's motions: a tracked frame's joins them unless it ended a jump from its
+        prediction (caught by learning afresh: as a velocity it predicted the jump again and
+        the next frames were lost); the first motion, or one between two full estimates,
+        starts them again unless it is a jump; a re-initialisation's alone is none."""
+        R1, t1 = self.poses[-1]
+        motion = increment_between(R1, t1, frame.R, frame.t)
+        if frame.status == "tracked":
+            if rotation_error_deg(self.predicted()[0], frame.R) <= FIRST_VELOCITY_MAX_DEG:
+                self._motions = [*self._motions, motion][-VELOCITY_FRAMES:]
+        elif not self._motions or self._last_full:
+            if rotation_error_deg(R1, frame.R) <= FIRST_VELOCITY_MAX_DEG:
+                self._motions = [motion]
 
     def _misaligned(self, score: float) -> bool:
         """Whether a frame's alignment score is far below the last frames'."""
@@ -181,10 +184,8 @@ class Tracker:
         )
 
     def predicted(self) -> Pose:
-        """The next pose by constant velocity: the last pose moved by the mean motion into the
-        last VELOCITY_FRAMES tracked frames (the last pose itself before any). The motion into
-        a re-initialised frame is not a velocity (after a jump it would predict the jump
-        again), unless there is none yet (see FIRST_VELOCITY_MAX_DEG)."""
+        """The next pose by constant velocity: the last pose moved by the mean of the last
+        VELOCITY_FRAMES motions :meth:`_observe` kept (the last pose itself before any)."""
         R1, t1 = self.poses[-1]
         if not self._motions:
             return R1, t1
