@@ -89,7 +89,7 @@ LINEAR_STEP_PX = 0.25
 #: A motion (or a tracked frame's correction of its prediction) above this is a jump, no
 #: velocity. Before any velocity, the motion into a re-initialised frame is one (without it, on
 #: an Aura tumble of 2° a frame whose frame 1 was lost, frames 2-3 ended 0.56° and 0.54° off).
-FIRST_VELOCITY_MAX_DEG = 6.0
+JUMP_DEG = 6.0
 
 #: Motions averaged into the velocity: an error e_k a frame leaves along a weakly seen direction
 #: (where the next frame's cost is flat and its start stands) enters the next start as
@@ -158,10 +158,10 @@ class Tracker:
         R1, t1 = self.poses[-1]
         motion = increment_between(R1, t1, frame.R, frame.t)
         if frame.status == "tracked":
-            if rotation_error_deg(self.predicted()[0], frame.R) <= FIRST_VELOCITY_MAX_DEG:
+            if rotation_error_deg(self.predicted()[0], frame.R) <= JUMP_DEG:
                 self._motions = [*self._motions, motion][-VELOCITY_FRAMES:]
         elif not self._motions or self._last_full:
-            if rotation_error_deg(R1, frame.R) <= FIRST_VELOCITY_MAX_DEG:
+            if rotation_error_deg(R1, frame.R) <= JUMP_DEG:
                 self._motions = [motion]
 
     def _misaligned(self, score: float) -> bool:
