@@ -23,6 +23,21 @@ N_FRAMES = 7
 DROPOUT = 3
 
 
+def recorded_estimates(monkeypatch: pytest.MonkeyPatch) -> list[Any]:
+    """The full estimates the tracker runs (the real ones), recorded in order."""
+    import worker.align.tracker as tracker_module
+
+    estimates: list[Any] = []
+    real = tracker_module.estimate
+
+    def recorded(*args: Any, **kwargs: Any) -> Any:
+        estimates.append(real(*args, **kwargs))
+        return estimates[-1]
+
+    monkeypatch.setattr(tracker_module, "estimate", recorded)
+    return estimates
+
+
 @pytest.fixture(scope="module")
 def sequence_dir(tmp_path_factory: pytest.TempPathFactory, variant: str) -> Path:
     """The demo satellite spinning 1°/frame and closing 10 %, rendered by the bench's ray
@@ -188,15 +203,7 @@ def test_a_frame_that_learns_its_jacobian_again_solves_for_the_sun_again(
         return out
 
     monkeypatch.setattr("worker.align.tracker.run_lm_stage", observed)
-    ended: list[Any] = []  # where each full estimate the tracker ran ended
-
-    def recorded(*args: Any, **kwargs: Any) -> Any:
-        est = real_estimate(*args, **kwargs)
-        ended.append((est.session.R.copy(), est.session.t.copy()))
-        return est
-
-    real_estimate = tracker_module.estimate
-    monkeypatch.setattr(tracker_module, "estimate", recorded)
+    estimates = recorded_estimates(monkeypatch)
 
     motion = Motion("turning", spin_deg=2.0, closing=0.0)
     seq = make_sequence(demo_model, Camera(**CAMERA), motion, 7, 11, "sun", fill=0.9)
@@ -218,8 +225,9 @@ def test_a_frame_that_learns_its_jacobian_again_solves_for_the_sun_again(
             # reports where the pass from them ended (Tracker._full)
             view = memory.state.learned_at
             assert view is not None and view.level == 1.0
-            np.testing.assert_allclose(view.R, ended[-1][0], atol=1e-12)
-            np.testing.assert_allclose(view.t, ended[-1][1], atol=1e-12)
+            ended = estimates[-1].session
+            np.testing.assert_allclose(view.R, ended.R, atol=1e-12)
+            np.testing.assert_allclose(view.t, ended.t, atol=1e-12)
         else:
             assert fit is not None, status
         assert list(memory.session.requested_lighting.sun_direction) == pytest.approx(asked)
@@ -292,20 +300,12 @@ def test_a_full_estimate_goes_on_with_a_pass_from_fresh_rows(
     frame's pass: features and rows made afresh where the estimate ended, an LM pass from
     them. The frame reports where that pass ended (and its render's score), and the next frame
     goes on from the rows learned there."""
-    import worker.align.tracker as tracker_module
     from schemas.camera import Camera
     from worker.align.estimator import errors_between
     from worker.align.tracker import Tracker
     from worker.bench.sequences import Motion, make_sequence
 
-    estimates: list[Any] = []  # the real estimates the tracker ran, recorded
-
-    def recorded(*args: Any, **kwargs: Any) -> Any:
-        estimates.append(real(*args, **kwargs))
-        return estimates[-1]
-
-    real = tracker_module.estimate
-    monkeypatch.setattr(tracker_module, "estimate", recorded)
+    estimates = recorded_estimates(monkeypatch)
     seq = make_sequence(
         demo_model, Camera(**CAMERA), Motion("still", 0.5, 0.0), 1, 23, "tone", fill=0.9
     )
