@@ -267,6 +267,26 @@ def test_irls_down_weights_outliers_and_recovers_the_increment() -> None:
         )
 
 
+def test_the_robust_scale_floor_keeps_features_a_tight_fit_would_drop() -> None:
+    """Most features fit to 0.03 px, a few are 0.5 px out (what a direction only they see
+    leaves): at the estimate's floor (0.05 px) Tukey drops them, at a tracker's (0.3 px) they
+    keep most of their weight and pull the increment their way."""
+    from worker.align.tracker import TRACK_ROBUST_FLOOR_PX
+
+    rng = np.random.default_rng(3)
+    k = 60
+    J = rng.normal(size=(2 * k, 6)) * [300, 300, 300, 20, 20, 5]
+    r = rng.normal(scale=0.03, size=2 * k)
+    few = np.zeros(k, dtype=bool)
+    few[:6] = True
+    r.reshape(-1, 2)[few] += 0.5 / np.sqrt(2)
+    _, w_tight, scale_tight = irls_increment(J, r)
+    _, w_floor, scale_floor = irls_increment(J, r, floor=TRACK_ROBUST_FLOOR_PX)
+    assert scale_tight < 0.1 and w_tight[few].max() < 0.05
+    assert scale_floor == TRACK_ROBUST_FLOOR_PX and w_floor[few].min() > 0.5
+    assert w_floor[~few].min() > 0.95
+
+
 def test_covariance_matches_the_analytic_one_on_a_linear_gaussian_problem() -> None:
     """Monte Carlo: the spread of the fitted δp is σ² (JᵀJ)⁻¹, and so is what covariance()
     reports from the residuals of one fit."""

@@ -302,7 +302,7 @@ def test_a_full_estimate_goes_on_with_a_pass_from_fresh_rows(
     goes on from the rows learned there."""
     from schemas.camera import Camera
     from worker.align.estimator import errors_between
-    from worker.align.tracker import Tracker
+    from worker.align.tracker import TRACK_ROBUST_FLOOR_PX, Tracker
     from worker.bench.sequences import Motion, make_sequence
 
     estimates = recorded_estimates(monkeypatch)
@@ -317,6 +317,8 @@ def test_a_full_estimate_goes_on_with_a_pass_from_fresh_rows(
     assert memory is not None
     passed = memory.session
     assert passed is not est.session and len(passed.history) >= 1  # the pass ran
+    # the estimate and the pass weigh features with the tracker's robust scale floor
+    assert est.session.robust_floor_px == passed.robust_floor_px == TRACK_ROBUST_FLOOR_PX
     np.testing.assert_allclose(result.R, passed.R, atol=1e-12)
     np.testing.assert_allclose(memory.learned_pose[0], passed.R, atol=1e-12)
     assert result.renders == est.result.renders + passed.renders

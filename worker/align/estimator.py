@@ -26,7 +26,7 @@ from worker.align.coarse import (
 )
 from worker.align.geometric import geometric_passes
 from worker.align.learning import apparent_radius_px
-from worker.align.lm import covariance
+from worker.align.lm import MIN_SCALE_PX, covariance
 from worker.align.pyramid import LevelPlan, level_spp, plan_levels
 from worker.align.refine import Outcome, run_lm_stage
 from worker.align.reflectance import reported_law
@@ -85,11 +85,11 @@ def estimate(
     on_iteration: ProgressCallback | None = None,
     should_cancel: CancelCheck | None = None,
     window_sensors: bool = False,
+    robust_floor_px: float = MIN_SCALE_PX,
 ) -> Estimate:
     """Estimate the pose of ``model`` in ``reference`` (float image, [0, 1], display-encoded).
-
-    ``window_sensors``: give the renderer window sensors even when ``options.window`` is off
-    (the estimate then works on the whole image; a tracker renders its frames' windows)."""
+    A tracker's: ``window_sensors`` (window sensors with ``options.window`` off: its frames
+    render windows), ``robust_floor_px`` (a higher robust scale floor, Session's doc)."""
     start = time.perf_counter()
     opts = request.options.resolved()
     camera = PinholeCamera.from_schema(request.camera)
@@ -131,6 +131,7 @@ def estimate(
         should_cancel=should_cancel,
         rng=np.random.default_rng(opts.seed),
         perturbation_scales=plan.perturbation,
+        robust_floor_px=robust_floor_px,
     )
     reason = _run_pipeline(session, renderer_for, plan)
     session.set_level(1.0)

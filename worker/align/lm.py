@@ -53,12 +53,13 @@ def feature_norms(r: Array) -> Array:
     return np.hypot(r[0::2], r[1::2])
 
 
-def robust_scale(norms: Array) -> float:
-    """A robust standard deviation of 2-D residuals from their lengths (MAD-like), px."""
+def robust_scale(norms: Array, floor: float = MIN_SCALE_PX) -> float:
+    """A robust standard deviation of 2-D residuals from their lengths (MAD-like), px, at
+    least ``floor``."""
     if len(norms) == 0:
-        return MIN_SCALE_PX
+        return floor
     # For isotropic Gaussian errors ‖e‖ is Rayleigh(σ) with median σ·√(2 ln 2).
-    return max(float(np.median(norms)) / np.sqrt(2 * np.log(2)), MIN_SCALE_PX)
+    return max(float(np.median(norms)) / np.sqrt(2 * np.log(2)), floor)
 
 
 def tukey_weights(norms: Array, scale: float) -> Array:
@@ -88,16 +89,17 @@ def _weighted_mean(sq: Array, w: Array) -> float:
 
 
 def irls_increment(
-    J: Array, r: Array, iterations: int = 5, w0: Array | None = None
+    J: Array, r: Array, iterations: int = 5, w0: Array | None = None, floor: float = MIN_SCALE_PX
 ) -> tuple[Array, Array, float]:
-    """Robust Gauss–Newton increment by IRLS; returns (δp, weights (k,), scale px)."""
+    """Robust Gauss–Newton increment by IRLS, the Tukey scale at least ``floor`` px; returns
+    (δp, weights (k,), scale px)."""
     k = len(r) // 2
     w = np.ones(k) if w0 is None else w0.copy()
     dp = lm_step(J, r, 0.0, w)
-    scale = MIN_SCALE_PX
+    scale = floor
     for _ in range(iterations):
         norms = feature_norms(r - J @ dp)
-        scale = robust_scale(norms[w > 0] if (w > 0).any() else norms)
+        scale = robust_scale(norms[w > 0] if (w > 0).any() else norms, floor)
         w = tukey_weights(norms, scale)
         if w.sum() < 3:
             break

@@ -111,7 +111,7 @@ def _weights(
     w0 = st.inliers[active].astype(np.float64)
     if w0.sum() < 3:
         w0 = np.ones(len(w0))
-    return irls_increment(J, r, w0=w0)[1]
+    return irls_increment(J, r, w0=w0, floor=session.robust_floor_px)[1]
 
 
 @dataclass
@@ -310,7 +310,7 @@ def _trial(session: Session, st: StageState, system: _System, sun: SunTilt | Non
     common = ok_t[system.active]
     r_t = whiten(system.A, (st.features.x_ref - h_t)[system.active].ravel())
     rows = rows_of(common)
-    cap = TUKEY_C * robust_scale(feature_norms(system.r)[system.w > 0])
+    cap = TUKEY_C * robust_scale(feature_norms(system.r)[system.w > 0], session.robust_floor_px)
     trial = _Trial(
         view,
         h_t,

@@ -20,6 +20,7 @@ from numpy.typing import NDArray
 from schemas.estimate import IterationRecord, Stage
 from schemas.options import EstimateOptions
 from worker.align.features import Described, describe
+from worker.align.lm import MIN_SCALE_PX
 from worker.align.pyramid import ladder_side
 from worker.engine.camera import PinholeCamera
 from worker.engine.exceptions import EstimationCancelled
@@ -64,12 +65,10 @@ class RenderedView:
 
 @dataclass(frozen=True)
 class LinearFit:
-    """The learned linear model r ≈ J δp at the current pose, as the covariance reads it.
-
+    """The learned linear model r ≈ J δp at the current pose, as the covariance reads it:
     ``J`` (2k, n) and ``r`` (2k,) are the whitened Jacobian rows and residuals of the k features
     used (n = 6, or 8 with the sun's tilt), ``w`` (k,) their weights and ``x`` (k, 2) their
-    positions in the image, px.
-    """
+    positions in the image, px."""
 
     J: Array
     r: Array
@@ -117,6 +116,8 @@ class Session:
     #: renderer has a sensor for every one of them).
     level: float = 1.0
     perturbation_scales: dict[float, float] = field(default_factory=dict)
+    #: Floor of the LM's robust residual scale, whitened px (tracker.TRACK_ROBUST_FLOOR_PX).
+    robust_floor_px: float = MIN_SCALE_PX
     #: Samples per pixel of the main renders of the stage in progress (None: options.spp).
     stage_spp: int | None = None
     #: The window's ladder side and centre (full-resolution px; None: the whole image): the

@@ -6,19 +6,17 @@ the previous image into the new one, starting where the learned Jacobian predict
 their learned Jacobian rows (Broyden-updated by every accepted step), the fitted sun, the tone
 curve and the sharpness match (motion blur's streak measured again); so a frame costs a render
 at the prediction, and a trial only when the LM's step moves a feature by LINEAR_STEP_PX or more.
-The learned-Jacobian LM stays the core: the rows are the paper's, learned from perturbed
-renders, and learned again (features made afresh, the sun's tilt solved again with
-options.fit_sun: as the target turns, shading features come in that the first fit misplaces)
-once the attitude has turned RELEARN_ROTATION_DEG from where they were learned, too few features
-are left, or the LM rejected a trial (the rows mispredicted the render). A frame's renders
+The learned-Jacobian LM stays the core: the rows are the paper's, learned again (features made
+afresh, the sun's tilt solved again with options.fit_sun) once the attitude has turned
+RELEARN_ROTATION_DEG since, too few features are left, or the LM rejected a trial. Its robust
+weights keep features a few tenths of a pixel out (TRACK_ROBUST_FLOOR_PX). A frame's renders
 render only a window around the target, pasted onto the sky (worker.align.skywindow).
 
 Each frame is refereed: a last render that explains the image poorly (alignment score below
-MIN_TRACK_SCORE, or far below the last frames') or too few features (MIN_TRACKED_FRACTION) mark
-it lost, and so does an LM that does not converge, once more after learning afresh when it was
-only still moving (UNFINISHED). The tracker then re-initialises with a full estimate
-('reinitialised'), from where the LM got to when that still aligns, else from the prediction;
-when that fails too, the frame is 'lost' and the prediction stands.
+MIN_TRACK_SCORE, or far below the last frames'), too few features (MIN_TRACKED_FRACTION) or an
+LM that does not converge (once more after learning afresh when only still moving, UNFINISHED)
+mark it lost: a full estimate re-initialises ('reinitialised'), from where the LM got to when
+that still aligns, else from the prediction; when that fails too, the frame is 'lost'.
 """
 
 from __future__ import annotations
@@ -35,7 +33,7 @@ from worker.align.refine import StageState, run_lm_stage
 from worker.align.session import CancelCheck, Session
 from worker.align.skywindow import sky_window
 from worker.align.tracked import TrackedFeatures, law_misplaced, work_box
-from worker.align.trackmemory import Memory, mispredicted
+from worker.align.trackmemory import Memory, Pose, mispredicted
 from worker.align.trackresult import FrameResult
 from worker.engine.exceptions import ProxposeError, TooFewFeaturesError
 from worker.engine.images import FloatImage, check_size, to_grey
@@ -71,21 +69,23 @@ MIN_KEPT_FRACTION = 0.5
 MIN_TRACKED_FRACTION = 0.25
 #: Attitude change (deg) since the Jacobian was learned after which it is learned again.
 RELEARN_ROTATION_DEG = 6.0
-
 #: Samples per pixel (at least) of the perturbation renders a tracked frame learns its Jacobian
 #: from: noise in the rows shrinks the step along weakly seen directions, and the rest goes on
 #: into the velocity. Started 0.2° off about the camera's x or y axis (Aura tumble, `rough`),
 #: one step from rows at 4 spp left 0.055–0.18°, at 16 spp 0.005–0.075°; at 8 spp the sequences
 #: drifted again. A relearning costs ~0.5 s more at 512² (13 renders at 256², 16 spp).
 TRACK_PERTURBATION_SPP = 16
-
+#: Floor of the robust residual scale (whitened px) of a tracker's LM, its full estimates too
+#: (a single estimate's: 0.05): along a weakly seen direction few features show the error, and
+#: at 0.05 Tukey dropped them (0.23 px out); an Aura approach then walked 0.4° a frame to 4.8°
+#: off (bench/README.md, "A robust scale floor for tracking").
+TRACK_ROBUST_FLOOR_PX = 0.3
 #: Image motion (px, the largest of any feature) of the LM's first step below which a tracked
 #: frame takes it without a trial render (worker.align.refine's linear_step_px): the step from
 #: a good prediction moves the features by a few hundredths of a pixel, and its trial would
 #: only measure them again (≤ 0.18 px on the ISS sequences at 512²; on a 192 × 144 sequence
 #: steps of 0.3–0.5 px still gained 0.1–0.2° from a trial).
 LINEAR_STEP_PX = 0.25
-
 #: A motion (or a tracked frame's correction of its prediction) above this is a jump, no
 #: velocity. Before any velocity, the motion into a re-initialised frame is one (without it, on
 #: an Aura tumble of 2° a frame whose frame 1 was lost, frames 2-3 ended 0.56° and 0.54° off).
@@ -102,8 +102,6 @@ CONVERGED = ("step_below_epsilon", "cost_converged", "linear_step")
 #: aligns then learns afresh and goes on (Tracker._relearn) instead of a ~3-s full estimate (on
 #: 16 sequences 18 of them → 5, errors alike; bench/README.md, "An unfinished frame goes on").
 UNFINISHED = ("max_iterations", "slow")
-
-Pose = tuple[Array, Array]
 
 
 class Tracker:
@@ -204,8 +202,9 @@ class Tracker:
             update={"initial_pose": pose_to_schema(*guess), "ground_truth": None}
         )
         est = estimate(
-            self.model, image, request, should_cancel=self.should_cancel, window_sensors=True
-        )
+            self.model, image, request, should_cancel=self.should_cancel, window_sensors=True,
+            robust_floor_px=TRACK_ROBUST_FLOOR_PX,
+        )  # fmt: skip
         session = est.session
         assert session is not None
         self._requested = session.requested_lighting
@@ -313,6 +312,7 @@ class Tracker:
         )
         assert self._requested is not None
         session.requested_lighting = self._requested
+        session.robust_floor_px = TRACK_ROBUST_FLOOR_PX
         keep = previous.sky_window[0] if previous.sky_window else None
         session.sky_window = sky_window(self._points, session, guess, keep)
         return session
