@@ -287,28 +287,6 @@ def test_the_robust_scale_floor_keeps_features_a_tight_fit_would_drop() -> None:
     assert w_floor[~few].min() > 0.95
 
 
-def test_features_a_higher_floor_adds_count_when_they_agree_on_a_pose() -> None:
-    """coherent(): six features the tight weights dropped and the loose ones keep, off by a pose
-    change along a direction the other 54 barely see, are explained by the loose weights' step
-    (a tracker then uses those weights); six off by 0.5 px each its own way are not."""
-    from worker.align.lm import coherent
-
-    rng = np.random.default_rng(5)
-    k = 60
-    J = rng.normal(size=(2 * k, 6)) * [300, 300, 300, 20, 20, 5]
-    few = np.zeros(k, dtype=bool)
-    few[:6] = True
-    J[np.repeat(~few, 2), 5] *= 0.01  # the sixth direction: only the six see it
-    noise = rng.normal(scale=0.03, size=2 * k)
-    seen = noise + J @ np.array([0, 0, 0, 0, 0, 0.15])
-    biased = noise.copy()
-    biased.reshape(-1, 2)[few] += 0.5 * rng.normal(size=(6, 2)) / np.sqrt(2)
-    tight, loose = (~few).astype(np.float64), np.ones(k)
-    assert coherent(J, seen, tight, loose)
-    assert not coherent(J, biased, tight, loose)
-    assert coherent(J, biased, loose, loose)  # nothing added: the loose weights stand
-
-
 def test_covariance_matches_the_analytic_one_on_a_linear_gaussian_problem() -> None:
     """Monte Carlo: the spread of the fitted δp is σ² (JᵀJ)⁻¹, and so is what covariance()
     reports from the residuals of one fit."""

@@ -20,9 +20,6 @@ TUKEY_C = 4.685
 RANSAC_SET_SIZE = 6
 #: Floor of the robust residual scale, px: KLT cannot resolve motion below this.
 MIN_SCALE_PX = 0.05
-#: Share of their squared residual the features a higher scale floor adds may keep after its
-#: step for its weights to be used (:func:`coherent`).
-COHERENT_LEFT = 0.5
 #: Smallest LM damping λ.
 LAMBDA_MIN = 1e-9
 #: An accepted step counts as not shrinking when it is more than this fraction of the last.
@@ -108,20 +105,6 @@ def irls_increment(
             break
         dp = lm_step(J, r, 0.0, w)
     return dp, w, scale
-
-
-def coherent(J: Array, r: Array, tight: Array, loose: Array) -> bool:
-    """Whether the features that ``loose`` weights (a higher scale floor) keep and ``tight``
-    ones weigh out agree on a pose: the loose weights' step leaves at most COHERENT_LEFT of
-    their squared residual. Along a direction most features barely see, the few that see it
-    are off by a pose error, which one step explains; features a shading model biases are off
-    each its own way."""
-    added = (loose > 0.5) & (tight < 0.5)
-    if not added.any():
-        return True
-    rows = np.repeat(added, 2)
-    left = (r - J @ lm_step(J, r, 0.0, loose))[rows]
-    return float(np.sum(left**2)) <= COHERENT_LEFT * float(np.sum(r[rows] ** 2))
 
 
 def ransac_increment(

@@ -25,11 +25,9 @@ from worker.align.learning import (
     learn_at_pose,
 )
 from worker.align.lm import (
-    MIN_SCALE_PX,
     TUKEY_C,
     Damping,
     capped_cost,
-    coherent,
     feature_norms,
     irls_increment,
     ransac_increment,
@@ -102,9 +100,7 @@ def _new_state(session: Session, mode: str, view: RenderedView) -> StageState:
 def _weights(
     session: Session, st: StageState, J: Array, r: Array, active: NDArray[np.bool_]
 ) -> Array:
-    """Per-feature weights over ``active``: RANSAC inliers on first use, then IRLS (Tukey); with
-    a raised ``session.robust_floor_px`` (a tracker's), that floor's weights when the features
-    they add agree on a pose (:func:`~worker.align.lm.coherent`)."""
+    """Per-feature weights over ``active``: RANSAC inliers on first use, then IRLS (Tukey)."""
     if not session.options.robust:
         return np.ones(int(active.sum()))
     if st.inliers is None:
@@ -115,12 +111,7 @@ def _weights(
     w0 = st.inliers[active].astype(np.float64)
     if w0.sum() < 3:
         w0 = np.ones(len(w0))
-    w = irls_increment(J, r, w0=w0)[1]
-    if session.robust_floor_px > MIN_SCALE_PX:
-        loose = irls_increment(J, r, w0=w0, floor=session.robust_floor_px)[1]
-        if coherent(J, r, w, loose):
-            w = loose
-    return w
+    return irls_increment(J, r, w0=w0, floor=session.robust_floor_px)[1]
 
 
 @dataclass

@@ -9,7 +9,7 @@ at the prediction, and a trial only when the LM's step moves a feature by LINEAR
 The learned-Jacobian LM stays the core: the rows are the paper's, learned again (features made
 afresh, the sun's tilt solved again with options.fit_sun) once the attitude has turned
 RELEARN_ROTATION_DEG since, too few features are left, or the LM rejected a trial. Its robust
-weights keep features tenths of a pixel out that agree (TRACK_ROBUST_FLOOR_PX). A frame's renders
+weights keep features a few tenths of a pixel out (TRACK_ROBUST_FLOOR_PX). A frame's renders
 render only a window around the target, pasted onto the sky (worker.align.skywindow).
 
 Each frame is refereed: a last render that explains the image poorly (alignment score below
@@ -75,10 +75,10 @@ RELEARN_ROTATION_DEG = 6.0
 #: one step from rows at 4 spp left 0.055–0.18°, at 16 spp 0.005–0.075°; at 8 spp the sequences
 #: drifted again. A relearning costs ~0.5 s more at 512² (13 renders at 256², 16 spp).
 TRACK_PERTURBATION_SPP = 16
-#: Robust scale floor (whitened px) of a tracker's LM and full estimates, where the features it
-#: adds to 0.05's agree on a pose (lm.coherent): few features see a weakly seen direction, at
-#: 0.05 Tukey dropped them (0.23 px out) and an Aura approach walked 0.4° a frame to 4.8° off
-#: (bench/README.md, "A robust scale floor for tracking").
+#: Floor of the robust residual scale (whitened px) of a tracker's LM, its full estimates too
+#: (a single estimate's: 0.05): along a weakly seen direction few features show the error, and
+#: at 0.05 Tukey dropped them (0.23 px out); an Aura approach then walked 0.4° a frame to 4.8°
+#: off (bench/README.md, "A robust scale floor for tracking").
 TRACK_ROBUST_FLOOR_PX = 0.3
 #: Image motion (px, the largest of any feature) of the LM's first step below which a tracked
 #: frame takes it without a trial render (worker.align.refine's linear_step_px): the step from
