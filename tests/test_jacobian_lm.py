@@ -270,7 +270,7 @@ def test_irls_down_weights_outliers_and_recovers_the_increment() -> None:
 def test_the_robust_scale_floor_keeps_features_a_tight_fit_would_drop() -> None:
     """Most features fit to 0.03 px, a few are 0.5 px out (what a direction only they see
     leaves): at the estimate's floor (0.05 px) Tukey drops them, at a tracker's (0.3 px) they
-    keep most of their weight and pull the increment their way."""
+    keep most of their weight and the others keep theirs."""
     from worker.align.tracker import TRACK_ROBUST_FLOOR_PX
 
     rng = np.random.default_rng(3)

@@ -309,10 +309,10 @@ class Tracker:
             should_cancel=self.should_cancel,
             rng=previous.rng,
             perturbation_scales=previous.perturbation_scales,
+            robust_floor_px=TRACK_ROBUST_FLOOR_PX,
         )
         assert self._requested is not None
         session.requested_lighting = self._requested
-        session.robust_floor_px = TRACK_ROBUST_FLOOR_PX
         keep = previous.sky_window[0] if previous.sky_window else None
         session.sky_window = sky_window(self._points, session, guess, keep)
         return session
