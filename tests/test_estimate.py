@@ -170,6 +170,26 @@ def test_a_pass_whose_steps_do_not_shrink_is_followed_by_a_fresh_one(demo_path: 
         assert result.errors is not None and result.errors.rotation_deg < 0.2, passes
 
 
+def test_an_attitude_search_brings_a_start_12_degrees_off_within_reach(
+    demo_path: Path, demo_model: LoadedModel, variant: str
+) -> None:
+    """options.attitude_search (a tracker's lost frame after a jump): its first record is the
+    search's, which turns the target about its centre from 12° off to within a few degrees, in
+    158 renders at the coarse level; the estimate then converges. Without it the first record
+    is the moment alignment's, and the attitude is as far off as it started."""
+    case = make_case(demo_model, _camera(SIZE_PX), CaseSpec(12.0, 0.0, fill=1.0), seed=3)
+    searched, _ = _run(demo_path, case, _with_options(case, attitude_search=True),
+                       with_artifacts=False)  # fmt: skip
+    first = searched.history[0]
+    assert first.stage == "coarse" and first.accepted and first.renders >= 158
+    assert first.rotation_error_deg is not None and first.rotation_error_deg < 4.0
+    assert searched.converged, searched.reason
+    assert searched.errors is not None and searched.errors.rotation_deg < MAX_ROTATION_DEG
+    plain, _ = _run(demo_path, case, with_artifacts=False)
+    assert plain.history[0].rotation_error_deg == pytest.approx(12.0, abs=0.5)
+    assert plain.history[0].renders < 10
+
+
 def test_artifacts_are_pngs_of_the_image_size(default_run: tuple[EstimateResult, dict]) -> None:
     result, artifacts = default_run
     assert set(artifacts) == set(ARTIFACT_NAMES) == set(result.artifacts)

@@ -23,6 +23,7 @@ from worker.align.coarse import (
     COARSE_MAX_ITERATIONS,
     run_moment_alignment,
     run_pnp_stage,
+    search_attitude,
 )
 from worker.align.geometric import geometric_passes
 from worker.align.learning import apparent_radius_px
@@ -183,6 +184,8 @@ def _coarse(session: Session, plan: LevelPlan) -> StopReason | None:
     coarse_ok = False
     pnp_reason: StopReason | None = None
     if opts.coarse == "pnp":
+        if opts.attitude_search:
+            search_attitude(session)
         run_moment_alignment(session)
         alone = opts.refine_features == "none"
         iterations = opts.max_iterations if alone else COARSE_MAX_ITERATIONS
@@ -350,15 +353,9 @@ def _sigma_translation(C: np.ndarray) -> np.ndarray:
 
 
 def _result(
-    session: Session,
-    reason: StopReason,
-    opts: EstimateOptions,
-    R0: np.ndarray,
-    t0: np.ndarray,
-    truth: tuple[np.ndarray, np.ndarray] | None,
-    start: float,
-    renders: int,
-) -> EstimateResult:
+    session: Session, reason: StopReason, opts: EstimateOptions, R0: np.ndarray, t0: np.ndarray,
+    truth: tuple[np.ndarray, np.ndarray] | None, start: float, renders: int,
+) -> EstimateResult:  # fmt: skip
     import mitsuba as mi
 
     fit = session.fit
