@@ -7,6 +7,7 @@ from dataclasses import replace
 from types import SimpleNamespace
 
 import numpy as np
+import pytest
 from test_refine import R0, T0, K, linear_problem, make_session  # noqa: F401 (a fixture)
 
 from schemas.camera import Camera
@@ -24,6 +25,7 @@ from worker.align.tracker import (
     Tracker,
 )
 from worker.align.trackmemory import Memory, mispredicted
+from worker.engine.exceptions import TooFewFeaturesError
 from worker.engine.metrics import rotation_error_deg
 from worker.engine.posemath import axis_angle_to_matrix
 
@@ -220,3 +222,36 @@ def test_two_full_estimates_in_a_row_start_the_velocity_again() -> None:
         [("reinitialised", 0.0), ("tracked", 1.0), ("reinitialised", 20.0), ("reinitialised", 40.0)]
     )
     np.testing.assert_allclose(_predicted_deg(tracker), 41.0, atol=1e-4)
+
+
+@pytest.mark.parametrize(
+    ("first", "second", "calls", "status"),
+    [
+        (True, None, [False], "reinitialised"),
+        (None, True, [False, True], "reinitialised"),  # TooFewFeaturesError, then converged
+        (False, True, [False, True], "reinitialised"),
+        (False, None, [False, True], "lost"),
+    ],
+)
+def test_a_lost_frame_searches_its_attitude_when_the_estimate_from_the_prediction_fails(
+    first: bool | None, second: bool | None, calls: list[bool], status: str
+) -> None:
+    """Tracker._recover with its full estimates scripted (the search is the engine's, real in
+    tests/test_estimate.py): a full estimate from the guess; when that raises (None) or does not
+    converge, one with options.attitude_search; when that fails too, the frame is lost there."""
+    guess = (axis_angle_to_matrix(np.array([0.0, 0.0, 1.0]), np.radians(12.0)), np.ones(3))
+    made: list[bool] = []
+
+    def full(*args: object) -> FrameResult:
+        search = bool(args[6])
+        made.append(search)
+        converged = second if search else first
+        if converged is None:
+            raise TooFewFeaturesError("only 5 features usable (need 6)")
+        return FrameResult(3, *guess, "reinitialised", converged, 1.0, 9, 9.0, 0.99, 40)
+
+    tracker = Tracker.__new__(Tracker)
+    tracker._full = full  # type: ignore[method-assign]
+    frame = tracker._recover(np.zeros((8, 8), np.float32), guess, None, 3, 0.0)
+    assert (made, frame.status) == (calls, status)
+    np.testing.assert_array_equal(frame.R, guess[0])

@@ -16,7 +16,7 @@ Each frame is refereed: a last render that explains the image poorly (alignment 
 MIN_TRACK_SCORE, or far below the last frames'), too few features (MIN_TRACKED_FRACTION) or an
 LM that does not converge (once more after learning afresh when only still moving, UNFINISHED)
 mark it lost: a full estimate re-initialises ('reinitialised'), from where the LM got to when
-that still aligns, else from the prediction; when that fails too, the frame is 'lost'.
+that still aligns, else the prediction, again with an attitude search when it fails; else 'lost'.
 """
 
 from __future__ import annotations
@@ -90,12 +90,10 @@ LINEAR_STEP_PX = 0.25
 #: velocity. Before any velocity, the motion into a re-initialised frame is one (without it, on
 #: an Aura tumble of 2° a frame whose frame 1 was lost, frames 2-3 ended 0.56° and 0.54° off).
 JUMP_DEG = 6.0
-
 #: Motions averaged into the velocity: an error e_k a frame leaves along a weakly seen direction
 #: (where the next frame's cost is flat and its start stands) enters the next start as
 #: 2e_k − e_(k−1) from the last motion, as 4e_k/3 − e_(k−3)/3 from three (bench/README.md).
 VELOCITY_FRAMES = 3
-
 #: The LM's stop rules that count as converged.
 CONVERGED = ("step_below_epsilon", "cost_converged", "linear_step")
 #: Stop rules of an LM still moving (iterations out, or steps no longer shrinking): a frame that
@@ -192,15 +190,15 @@ class Tracker:
     # -- a full estimate (first frame, re-initialisation) ---------------------------------
     def _full(
         self, image: FloatImage, guess: Pose, truth: Pose | None, index: int, start: float,
-        status: str,
+        status: str, search: bool = False,
     ) -> FrameResult:  # fmt: skip
         """A full estimate from ``guess``, then a relearning frame's pass (:meth:`_relearn`,
         rows at TRACK_PERTURBATION_SPP) from features made afresh where it ended; the next frames
         go on from them (bench/README.md, "A fresh feature set after each full estimate"; "A full
         estimate finished by a pass from fresh rows": over 0.15° 4 → 0 of 45, ~0.5 s)."""
-        request = self.request.model_copy(
-            update={"initial_pose": pose_to_schema(*guess), "ground_truth": None}
-        )
+        opts = self.request.options.model_copy(update={"attitude_search": search})
+        update = {"initial_pose": pose_to_schema(*guess), "ground_truth": None, "options": opts}
+        request = self.request.model_copy(update=update)
         est = estimate(
             self.model, image, request, should_cancel=self.should_cancel, window_sensors=True,
             robust_floor_px=TRACK_ROBUST_FLOOR_PX,
@@ -386,13 +384,15 @@ class Tracker:
     def _recover(
         self, image: FloatImage, guess: Pose, truth: Pose | None, index: int, start: float
     ) -> FrameResult:
-        """The frame is lost: a full estimate from the prediction, or the prediction itself."""
-        try:
-            frame = self._full(image, guess, truth, index, start, "reinitialised")
-            if frame.converged:
-                return frame
-        except ProxposeError:
-            pass
+        """The frame is lost: a full estimate from the prediction, failing that one that searches
+        the attitude first (options.attitude_search: a jump past descriptor matches), else that."""
+        for search in (False, True):
+            try:
+                frame = self._full(image, guess, truth, index, start, "reinitialised", search)
+                if frame.converged:
+                    return frame
+            except ProxposeError:
+                pass
         R, t = guess
         return FrameResult(
             index, R, t, "lost", False, time.perf_counter() - start, 0, 0.0, -1.0, 0,
