@@ -195,10 +195,11 @@ class EstimateOptions(BaseModel):
         default=False,
         description="Before the coarse stage, turn the target about its centre to the attitude "
         "whose render best matches the reference (turns of 6-18°, then 3-6° and 1.5-3° about "
-        "the best: 158 renders at the coarse level, ~1 s at 512²). For an initial attitude "
-        "over ~10° off, where descriptor matches fail; a tracker's lost frame uses it when the "
-        "full estimate from the prediction fails. Not with a camera inside the model's "
-        "bounding sphere (terrain).",
+        "the best: 158 renders at the coarse level, ~1 s at 512²). A last resort for a start "
+        "whose position is right and attitude far off (a tracked target that jumped: a "
+        "tracker's lost frame uses it when the full estimate from the prediction fails); with "
+        "the position off too it can turn the target the wrong way. Not with a camera inside "
+        "the model's bounding sphere (terrain).",
     )
     refine_features: Literal["klt", "matches", "none"] = Field(
         default="klt",

@@ -231,14 +231,16 @@ def test_two_full_estimates_in_a_row_start_the_velocity_again() -> None:
         (None, True, [False, True], "reinitialised"),  # TooFewFeaturesError, then converged
         (False, True, [False, True], "reinitialised"),
         (False, None, [False, True], "lost"),
+        (False, 0.75, [False, True], "lost"),  # converged where it aligns poorly: a wrong attitude
     ],
 )
 def test_a_lost_frame_searches_its_attitude_when_the_estimate_from_the_prediction_fails(
-    first: bool | None, second: bool | None, calls: list[bool], status: str
+    first: bool | None, second: bool | float | None, calls: list[bool], status: str
 ) -> None:
     """Tracker._recover with its full estimates scripted (the search is the engine's, real in
     tests/test_estimate.py): a full estimate from the guess; when that raises (None) or does not
-    converge, one with options.attitude_search; when that fails too, the frame is lost there."""
+    converge, one with options.attitude_search, kept when it converged and its render aligns as
+    a tracked frame's must (a float: its alignment score, else 0.99); else the frame is lost."""
     guess = (axis_angle_to_matrix(np.array([0.0, 0.0, 1.0]), np.radians(12.0)), np.ones(3))
     made: list[bool] = []
 
@@ -248,9 +250,11 @@ def test_a_lost_frame_searches_its_attitude_when_the_estimate_from_the_predictio
         converged = second if search else first
         if converged is None:
             raise TooFewFeaturesError("only 5 features usable (need 6)")
-        return FrameResult(3, *guess, "reinitialised", converged, 1.0, 9, 9.0, 0.99, 40)
+        score = converged if isinstance(converged, float) else 0.99
+        return FrameResult(3, *guess, "reinitialised", bool(converged), 1.0, 9, 9.0, score, 40)
 
     tracker = Tracker.__new__(Tracker)
+    tracker._misalignment = [0.004] * 5
     tracker._full = full  # type: ignore[method-assign]
     frame = tracker._recover(np.zeros((8, 8), np.float32), guess, None, 3, 0.0)
     assert (made, frame.status) == (calls, status)
