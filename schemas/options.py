@@ -194,12 +194,12 @@ class EstimateOptions(BaseModel):
     attitude_search: bool = Field(
         default=False,
         description="Before the coarse stage, turn the target about its centre to the attitude "
-        "whose render best matches the reference (turns of 6-18°, then 3-6° and 1.5-3° about "
-        "the best: 158 renders at the coarse level, ~1 s at 512²). A last resort for a start "
-        "whose position is right and attitude far off (a tracked target that jumped: a "
-        "tracker's lost frame uses it when the full estimate from the prediction fails); with "
-        "the position off too it can turn the target the wrong way. Not with a camera inside "
-        "the model's bounding sphere (terrain).",
+        "whose render, moved onto the reference's silhouette, best matches it (turns of 6-18°, "
+        "then 3-6° and 1.5-3° about the best: 158 renders at the coarse level, ~1 s at 512²), "
+        "and place it there. For a start far off in attitude, where descriptor matches fail (a "
+        "tracker's lost frame uses it when the full estimate from the prediction fails); not "
+        "the default (bench: a wash on starts up to 20° off, for ~1 s more). Skipped when the "
+        "frame cuts the target or the camera is inside the model's bounding sphere (terrain).",
     )
     refine_features: Literal["klt", "matches", "none"] = Field(
         default="klt",

@@ -9,11 +9,18 @@ import pytest
 from synthetic_images import StubModel, StubRenderer
 
 from schemas.options import EstimateOptions
-from worker.align.coarse import SCORE_MARGIN, _clearly_worse, run_moment_alignment
+from worker.align.coarse import (
+    SCORE_MARGIN,
+    _clearly_worse,
+    placed_score,
+    reference_silhouette,
+    run_moment_alignment,
+)
 from worker.align.coarse import silhouette_moments as moments
 from worker.align.session import Session
 from worker.engine.camera import PinholeCamera
 from worker.engine.images import to_display
+from worker.engine.photometry import alignment_score
 
 CAMERA = PinholeCamera(128, 128, 400.0, 400.0, 63.5, 63.5)  # the sphere: 40 px in radius
 T_TRUE = np.array([0.5, -0.3, 10.0])
@@ -113,3 +120,14 @@ def test_the_last_pnp_pose_is_judged_by_its_render(
     np.testing.assert_array_equal(session.t, good if last_is_wrong else last)
     assert session.history[-1].accepted is not last_is_wrong
     assert len(session.history) == (3 if last_is_wrong else 2)
+
+
+def test_a_placed_score_looks_past_the_silhouette_s_position_and_size() -> None:
+    """search_attitude scores each candidate after moving and scaling its silhouette onto the
+    reference's in the image: a disk off to the side and 15 % too far scores about as well as
+    one in place, where the plain alignment score does not."""
+    reference = to_display(sphere(np.eye(3), T_TRUE)).astype(np.float32)
+    off = to_display(sphere(np.eye(3), np.array([0.8, -0.1, 11.5]))).astype(np.float32)
+    score, own = placed_score(reference, off, reference_silhouette(reference))
+    assert own is not None and own[0] < reference_silhouette(reference)[0]
+    assert score > 0.98 > 0.9 > alignment_score(reference, off)

@@ -9,6 +9,7 @@ the PnP-refinement baseline.
 
 from __future__ import annotations
 
+import cv2
 import numpy as np
 from numpy.typing import NDArray
 
@@ -69,34 +70,93 @@ def sphere_axes(n: int) -> NDArray[np.float64]:
 
 def search_attitude(session: Session) -> bool:
     """Turn the target about its centre to the attitude whose render explains the reference
-    best (alignment score), in rounds about the best so far (SEARCH_ROUNDS). For a start too
-    far off in attitude for descriptor matches: a tracked ISS that jumped 12° matched 11
-    features with its render at the prediction and PnP failed; from the search's 1.7° the
-    estimate converged 0.05° off (bench/README.md, "A lost frame searches its attitude").
-    Returns whether the pose moved. A camera inside the model's bounding sphere (terrain) is
-    left where it is: turning the model about its centre would carry the ground away."""
+    best, in rounds about the best so far (SEARCH_ROUNDS), then place it as moment alignment
+    does. Each candidate is scored after moving its silhouette onto the reference's in the
+    image (centroid and area, :func:`placed_score`), so a start off in position as well is not
+    answered by an attitude that moves the silhouette instead (bench/README.md, "A lost frame
+    searches its attitude"). For a start too far off in attitude for descriptor matches: a
+    tracked ISS that jumped 12° matched 11 features with its render at the prediction and PnP
+    failed. Returns whether the pose moved; the placed render must align better than the
+    start's. Skipped when the frame cuts the target or the camera is inside the model's
+    bounding sphere (terrain: turning the model about its centre would carry the ground away)."""
     model = session.renderer.model
     centre = session.R @ model.centre + session.t
-    if float(np.linalg.norm(centre)) <= model.radius:
-        return False
     start = session.current_view()
+    ref = reference_silhouette(session.ref_grey)
+    if (
+        float(np.linalg.norm(centre)) <= model.radius
+        or cut_by_frame(start.grey > LIT_FRACTION * float(start.grey.max()))
+        or ref[0] < MIN_SILHOUETTE_PX
+    ):
+        return False
     with session.timed("match"):
-        best = (alignment_score(session.ref_grey, start.grey), start)
+        best = (*placed_score(session.ref_grey, start.grey, ref), start)
     for turns, n_axes in SEARCH_ROUNDS:
-        R_best = best[1].R
+        R_best = best[2].R
         for axis in sphere_axes(n_axes):
             for deg in turns:
                 R = axis_angle_to_matrix(axis, float(np.radians(deg))) @ R_best
                 view = session.render_view(R, centre - R @ model.centre)
                 with session.timed("match"):
-                    score = alignment_score(session.ref_grey, view.grey)
-                if score > best[0]:
-                    best = (score, view)
-    if best[1] is start:
+                    score, silhouette = placed_score(session.ref_grey, view.grey, ref)
+                if score > best[0] and silhouette is not None:
+                    best = (score, silhouette, view)
+    return best[1] is not None and _move_if_better(session, start, best[2], best[1], ref)
+
+
+#: A silhouette: its area (px²) and centroid (x, y), of the working level's image.
+Silhouette = tuple[float, NDArray[np.float64]]
+
+
+def reference_silhouette(ref: FloatImage) -> Silhouette:
+    """The reference's lit silhouette: pixels well above the sky's level and noise."""
+    sky = float(np.median(ref))
+    noise = 1.4826 * float(np.median(np.abs(ref - sky)))
+    level = sky + max(6.0 * noise, 0.05 * (float(np.percentile(ref, 99.9)) - sky))
+    return silhouette_moments(ref, level)
+
+
+def render_silhouette(grey: FloatImage) -> Silhouette:
+    return silhouette_moments(grey, LIT_FRACTION * float(grey.max()))
+
+
+def placed_score(
+    ref: FloatImage, grey: FloatImage, silhouette: Silhouette
+) -> tuple[float, Silhouette | None]:
+    """The alignment score of a render moved and scaled in the image so its silhouette has the
+    reference's (``silhouette``) centroid and area, and the render's silhouette (None, and the
+    score as it stands, when it has none)."""
+    own = render_silhouette(grey)
+    if own[0] < MIN_SILHOUETTE_PX:
+        return alignment_score(ref, grey), None
+    s = float(np.sqrt(silhouette[0] / own[0]))
+    (xr, yr), (x, y) = silhouette[1], own[1]
+    M = np.float32([[s, 0.0, xr - s * x], [0.0, s, yr - s * y]])
+    h, w = grey.shape
+    moved = cv2.warpAffine(grey.astype(np.float32), M, (w, h), flags=cv2.INTER_LINEAR)
+    return alignment_score(ref, moved), own
+
+
+def _move_if_better(
+    session: Session, start: RenderedView, view: RenderedView, own: Silhouette, ref: Silhouette
+) -> bool:
+    """Move ``view``'s target so its silhouette has the reference's centroid (turning its
+    centre towards that ray) and area (scaling its range); keep the move, recorded as a coarse
+    iteration, only when its render aligns better with the reference than ``start``'s."""
+    centre = view.R @ session.renderer.model.centre + view.t
+    d_ren, d_ref = session.camera.rays(own[1])[0], session.camera.rays(ref[1])[0]
+    axis = np.cross(d_ren, d_ref)
+    turn = axis_angle_to_matrix(axis, float(np.arcsin(min(np.linalg.norm(axis), 1.0))))
+    t_new = turn @ centre * float(np.sqrt(own[0] / ref[0])) - view.R @ session.renderer.model.centre
+    with session.timed("match"):
+        before = alignment_score(session.ref_grey, start.grey)
+        moved = session.render_view(view.R, t_new)
+        after = alignment_score(session.ref_grey, moved.grey)
+    if after <= before:
         session.record("coarse", 0.0, 0.0, 0.0, False, 0)
         return False
-    step = step_norm(increment_between(start.R, start.t, best[1].R, best[1].t), session.range_)
-    session.accept(best[1])
+    step = step_norm(increment_between(start.R, start.t, view.R, t_new), session.range_)
+    session.accept(moved)
     session.record("coarse", 0.0, step, 0.0, True, 0)
     return True
 
@@ -110,34 +170,12 @@ def run_moment_alignment(session: Session) -> bool:
     better with the reference (alignment score); returns whether it was kept.
     """
     view = session.current_view()
-    ref = session.ref_grey
     if cut_by_frame(view.grey > LIT_FRACTION * float(view.grey.max())):
         return False  # area and centroid of a silhouette the frame cuts say nothing of the pose
-    sky = float(np.median(ref))
-    noise = 1.4826 * float(np.median(np.abs(ref - sky)))
-    level_ref = sky + max(6.0 * noise, 0.05 * (float(np.percentile(ref, 99.9)) - sky))
-    area_ref, c_ref = silhouette_moments(ref, level_ref)
-    area_ren, c_ren = silhouette_moments(view.grey, LIT_FRACTION * float(view.grey.max()))
-    if area_ref < MIN_SILHOUETTE_PX or area_ren < MIN_SILHOUETTE_PX:
+    ref, own = reference_silhouette(session.ref_grey), render_silhouette(view.grey)
+    if ref[0] < MIN_SILHOUETTE_PX or own[0] < MIN_SILHOUETTE_PX:
         return False
-    cam = session.camera
-    centre = view.R @ session.renderer.model.centre + view.t
-    d_ren, d_ref = cam.rays(c_ren)[0], cam.rays(c_ref)[0]
-    axis = np.cross(d_ren, d_ref)
-    turn = axis_angle_to_matrix(axis, float(np.arcsin(min(np.linalg.norm(axis), 1.0))))
-    new_centre = turn @ centre * float(np.sqrt(area_ren / area_ref))
-    t_new = new_centre - view.R @ session.renderer.model.centre
-    with session.timed("match"):
-        before = alignment_score(ref, view.grey)
-        moved = session.render_view(view.R, t_new)
-        after = alignment_score(ref, moved.grey)
-    if after <= before:
-        session.record("coarse", 0.0, 0.0, 0.0, False, 0)
-        return False
-    step = step_norm(increment_between(view.R, view.t, view.R, t_new), session.range_)
-    session.accept(moved)
-    session.record("coarse", 0.0, step, 0.0, True, 0)
-    return True
+    return _move_if_better(session, view, view, own, ref)
 
 
 def run_pnp_stage(
