@@ -12,6 +12,7 @@ from test_refine import R0, T0, K, linear_problem, make_session  # noqa: F401 (a
 
 from schemas.camera import Camera
 from schemas.estimate import EstimateRequest
+from schemas.options import EstimateOptions
 from schemas.pose import Pose
 from worker.align.refine import StageState, run_lm_stage
 from worker.align.session import Session
@@ -259,3 +260,33 @@ def test_a_lost_frame_searches_its_attitude_when_the_estimate_from_the_predictio
     frame = tracker._recover(np.zeros((8, 8), np.float32), guess, None, 3, 0.0)
     assert (made, frame.status) == (calls, status)
     np.testing.assert_array_equal(frame.R, guess[0])
+
+
+@pytest.mark.parametrize(
+    ("asked", "search", "searched"),
+    [(False, False, False), (False, True, True), (True, False, True), (True, True, True)],
+)
+def test_a_full_estimate_searches_when_the_frame_s_recovery_or_the_request_asks(
+    asked: bool, search: bool, searched: bool, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """Tracker._full's request: attitude_search on for a recovery's second try (``search``) and
+    whenever the track's request asked for it (the first frame too); the estimate is stopped at
+    its call (the search itself is the engine's, tests/test_estimate.py)."""
+    seen: list[EstimateRequest] = []
+
+    def stop(model: object, image: object, request: EstimateRequest, **kw: object) -> None:
+        seen.append(request)
+        raise TooFewFeaturesError("stopped at the call")
+
+    monkeypatch.setattr("worker.align.tracker.estimate", stop)
+    tracker = Tracker.__new__(Tracker)
+    camera = Camera(width=64, height=64, fx=60.0, fy=60.0, cx=31.5, cy=31.5)
+    initial = Pose(t=list(map(float, T0)), quaternion=[1.0, 0.0, 0.0, 0.0])
+    options = EstimateOptions(attitude_search=asked)
+    tracker.request = EstimateRequest(camera=camera, initial_pose=initial, options=options)
+    tracker.model, tracker.should_cancel = None, None  # type: ignore[assignment]
+    with pytest.raises(TooFewFeaturesError):
+        tracker._full(np.zeros((64, 64), np.float32), (R0, T0), None, 0, 0.0, "reinitialised",
+                      search)  # fmt: skip
+    assert seen[0].options.attitude_search is searched
+    assert seen[0].initial_pose.t == list(map(float, T0))

@@ -12,11 +12,10 @@ RELEARN_ROTATION_DEG since, too few features are left, or the LM rejected a tria
 weights keep features a few tenths of a pixel out (TRACK_ROBUST_FLOOR_PX). A frame's renders
 render only a window around the target, pasted onto the sky (worker.align.skywindow).
 
-Each frame is refereed: a last render that explains the image poorly (alignment score below
-MIN_TRACK_SCORE, or far below the last frames'), too few features (MIN_TRACKED_FRACTION) or an
-LM that does not converge (once more after learning afresh when only still moving, UNFINISHED)
-mark it lost: a full estimate re-initialises ('reinitialised'), from where the LM got to when
-that still aligns, else the prediction, again with an attitude search when it fails; else 'lost'.
+Each frame is refereed: a poor last render (alignment score below MIN_TRACK_SCORE, or far below
+the last frames'), too few features (MIN_TRACKED_FRACTION) or an LM that does not converge (after
+learning afresh when only still moving, UNFINISHED) mark it lost: a full estimate from where the
+LM got to (if aligned) or the prediction re-initialises it, failing that one searching the attitude.
 """
 
 from __future__ import annotations
@@ -196,7 +195,8 @@ class Tracker:
         rows at TRACK_PERTURBATION_SPP) from features made afresh where it ended; the next frames
         go on from them (bench/README.md, "A fresh feature set after each full estimate"; "A full
         estimate finished by a pass from fresh rows": over 0.15° 4 → 0 of 45, ~0.5 s)."""
-        opts = self.request.options.model_copy(update={"attitude_search": search})
+        opts = self.request.options  # a search asked for in the request stands
+        opts = opts.model_copy(update={"attitude_search": search or opts.attitude_search})
         update = {"initial_pose": pose_to_schema(*guess), "ground_truth": None, "options": opts}
         request = self.request.model_copy(update=update)
         est = estimate(
