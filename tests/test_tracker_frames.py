@@ -78,6 +78,14 @@ def test_more_samples_asked_for_are_kept() -> None:
     assert session.options.perturbation_spp == 4 * TRACK_PERTURBATION_SPP
 
 
+def _request(options: EstimateOptions | None = None) -> EstimateRequest:
+    """A 64-px track request whose first guess is (I, T0)."""
+    camera = Camera(width=64, height=64, fx=60.0, fy=60.0, cx=31.5, cy=31.5)
+    initial = Pose(t=list(map(float, T0)), quaternion=[1.0, 0.0, 0.0, 0.0])
+    options = options or EstimateOptions()
+    return EstimateRequest(camera=camera, initial_pose=initial, options=options)
+
+
 def _scripted_tracker(frames: list[tuple[str, float]]) -> Tracker:
     """A tracker whose frames come out as scripted: (status, attitude about z in deg); the
     velocity logic of Tracker.track is what runs."""
@@ -89,9 +97,7 @@ def _scripted_tracker(frames: list[tuple[str, float]]) -> Tracker:
         return FrameResult(0, R, T0, status, status != "lost", 0.0, 1, 0.1, 0.99, 50)
 
     tracker = Tracker.__new__(Tracker)
-    camera = Camera(width=64, height=64, fx=60.0, fy=60.0, cx=31.5, cy=31.5)
-    initial = Pose(t=list(map(float, T0)), quaternion=[1.0, 0.0, 0.0, 0.0])
-    tracker.request = EstimateRequest(camera=camera, initial_pose=initial)
+    tracker.request = _request()
     tracker.poses, tracker._motions, tracker._misalignment = [], [], []
     tracker._last_full = False
     tracker._memory = None  # every frame goes through _full, scripted
@@ -226,22 +232,25 @@ def test_two_full_estimates_in_a_row_start_the_velocity_again() -> None:
 
 
 @pytest.mark.parametrize(
-    ("first", "second", "calls", "status"),
+    ("asked", "first", "second", "calls", "status"),
     [
-        (True, None, [False], "reinitialised"),
-        (None, True, [False, True], "reinitialised"),  # TooFewFeaturesError, then converged
-        (False, True, [False, True], "reinitialised"),
-        (False, None, [False, True], "lost"),
-        (False, 0.75, [False, True], "lost"),  # converged where it aligns poorly: a wrong attitude
+        (False, True, None, [False], "reinitialised"),
+        (False, None, True, [False, True], "reinitialised"),  # TooFewFeaturesError, converged
+        (False, False, True, [False, True], "reinitialised"),
+        (False, False, None, [False, True], "lost"),
+        (False, False, 0.75, [False, True], "lost"),  # converged, aligned poorly: a wrong attitude
+        (True, None, True, [False], "lost"),  # the first searched already: not the same again
     ],
 )
 def test_a_lost_frame_searches_its_attitude_when_the_estimate_from_the_prediction_fails(
-    first: bool | None, second: bool | float | None, calls: list[bool], status: str
+    asked: bool, first: bool | None, second: bool | float | None, calls: list[bool], status: str
 ) -> None:
     """Tracker._recover with its full estimates scripted (the search is the engine's, real in
     tests/test_estimate.py): a full estimate from the guess; when that raises (None) or does not
     converge, one with options.attitude_search, kept when it converged and its render aligns as
-    a tracked frame's must (a float: its alignment score, else 0.99); else the frame is lost."""
+    a tracked frame's must (a float: its alignment score, else 0.99); else the frame is lost.
+    When the track's request ``asked`` for the search, the first estimate searched (Tracker._full)
+    and there is no second."""
     guess = (axis_angle_to_matrix(np.array([0.0, 0.0, 1.0]), np.radians(12.0)), np.ones(3))
     made: list[bool] = []
 
@@ -255,6 +264,7 @@ def test_a_lost_frame_searches_its_attitude_when_the_estimate_from_the_predictio
         return FrameResult(3, *guess, "reinitialised", bool(converged), 1.0, 9, 9.0, score, 40)
 
     tracker = Tracker.__new__(Tracker)
+    tracker.request = _request(EstimateOptions(attitude_search=asked))
     tracker._misalignment = [0.004] * 5
     tracker._full = full  # type: ignore[method-assign]
     frame = tracker._recover(np.zeros((8, 8), np.float32), guess, None, 3, 0.0)
@@ -280,10 +290,7 @@ def test_a_full_estimate_searches_when_the_frame_s_recovery_or_the_request_asks(
 
     monkeypatch.setattr("worker.align.tracker.estimate", stop)
     tracker = Tracker.__new__(Tracker)
-    camera = Camera(width=64, height=64, fx=60.0, fy=60.0, cx=31.5, cy=31.5)
-    initial = Pose(t=list(map(float, T0)), quaternion=[1.0, 0.0, 0.0, 0.0])
-    options = EstimateOptions(attitude_search=asked)
-    tracker.request = EstimateRequest(camera=camera, initial_pose=initial, options=options)
+    tracker.request = _request(EstimateOptions(attitude_search=asked))
     tracker.model, tracker.should_cancel = None, None  # type: ignore[assignment]
     with pytest.raises(TooFewFeaturesError):
         tracker._full(np.zeros((64, 64), np.float32), (R0, T0), None, 0, 0.0, "reinitialised",

@@ -60,6 +60,12 @@ def cut_by_frame(mask: NDArray[np.bool_]) -> bool:
     return bool(border.mean() > MAX_BORDER_FRACTION)
 
 
+def frame_cuts(grey: FloatImage) -> bool:
+    """Whether the frame cuts a render's lit silhouette (:func:`cut_by_frame`): its area and
+    centroid then say nothing of the pose."""
+    return cut_by_frame(grey > LIT_FRACTION * float(grey.max()))
+
+
 def sphere_axes(n: int) -> NDArray[np.float64]:
     """``n`` unit vectors spread evenly over the sphere (a Fibonacci lattice), (n, 3)."""
     i = np.arange(n) + 0.5
@@ -85,7 +91,7 @@ def search_attitude(session: Session) -> bool:
     ref = reference_silhouette(session.ref_grey)
     if (
         float(np.linalg.norm(centre)) <= model.radius
-        or cut_by_frame(start.grey > LIT_FRACTION * float(start.grey.max()))
+        or frame_cuts(start.grey)
         or ref[0] < MIN_SILHOUETTE_PX
     ):
         return False
@@ -170,8 +176,8 @@ def run_moment_alignment(session: Session) -> bool:
     better with the reference (alignment score); returns whether it was kept.
     """
     view = session.current_view()
-    if cut_by_frame(view.grey > LIT_FRACTION * float(view.grey.max())):
-        return False  # area and centroid of a silhouette the frame cuts say nothing of the pose
+    if frame_cuts(view.grey):
+        return False
     ref, own = reference_silhouette(session.ref_grey), render_silhouette(view.grey)
     if ref[0] < MIN_SILHOUETTE_PX or own[0] < MIN_SILHOUETTE_PX:
         return False

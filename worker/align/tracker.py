@@ -385,8 +385,8 @@ class Tracker:
         self, image: FloatImage, guess: Pose, truth: Pose | None, index: int, start: float
     ) -> FrameResult:
         """The frame is lost: a full estimate from the prediction, failing that one that searches
-        the attitude first (options.attitude_search) and aligns as tracked frames must; or lost."""
-        for search in (False, True):
+        the attitude first (options.attitude_search; unless the first did) and aligns; or lost."""
+        for search in (False,) if self.request.options.attitude_search else (False, True):
             try:
                 frame = self._full(image, guess, truth, index, start, "reinitialised", search)
                 if frame.converged and (not search or self._holds(frame.alignment_score, 0, 0)):
