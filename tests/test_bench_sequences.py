@@ -16,6 +16,47 @@ def test_bench_sequences_rejects_an_unknown_motion(tmp_path: Path) -> None:
     assert "spiral" in out.stderr and "approach" in out.stderr
 
 
+def test_bench_sequences_rejects_a_size_out_of_range(tmp_path: Path) -> None:
+    out = proxpose(
+        "bench", "--sequences", "approach", "--models", "demo", "--size", "640x8",
+        "--output", str(tmp_path),
+    )  # fmt: skip
+    assert out.returncode == 2
+    assert "--size" in out.stderr and "32..4096" in out.stderr
+    assert not (tmp_path / "sequences.json").exists()
+
+
+def test_each_sequence_size_has_its_camera_a_wide_one_off_centre(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """The suite makes its sequences at every size asked for, with the single cases' camera
+    (bench_camera): square and centred, or W×H with the principal point off the centre. The
+    renders are left out here (the sequence maker records its camera and stops); the test
+    above runs the suite whole."""
+    from worker.bench import tracks
+    from worker.bench.cases import bench_camera
+    from worker.demo.satellite import demo_satellite_path
+
+    cameras = []
+
+    class Made(Exception):
+        pass
+
+    def record(model: object, camera: object, *args: object) -> None:
+        cameras.append(camera)
+        raise Made
+
+    monkeypatch.setattr(tracks, "make_sequence", record)
+    model = ("demo", demo_satellite_path(tmp_path))
+    for size in ((256, 256), (320, 240)):
+        with pytest.raises(Made):
+            tracks.run_suite([model], ["approach"], ["plain"], 2, [size], 0, tmp_path)
+    square, wide = cameras
+    assert square == bench_camera(256)
+    assert wide == bench_camera(320, 240)
+    assert (wide.width, wide.height) == (320, 240) and wide.cx != (320 - 1) / 2
+
+
 @pytest.mark.slow
 def test_bench_sequences_pairs_the_tracker_with_chained_estimates(tmp_path: Path) -> None:
     out = proxpose(
@@ -47,7 +88,8 @@ def test_bench_sequences_pairs_the_tracker_with_chained_estimates(tmp_path: Path
     assert [f["status"] for f in detail][0] == "reinitialised" and len(detail) == 4
     assert max(f["rot_deg"] for f in detail) == pytest.approx(track["rot_max_deg"], abs=1e-4)
     assert all(f["sigma_rot_deg"] > 0 for f in detail if f["status"] != "lost")
-    assert "| demo | approach | tone | track |" in (tmp_path / "sequences.md").read_text()
+    assert track["size"] == "192x192"
+    assert "| 192x192 | demo | approach | tone | track |" in (tmp_path / "sequences.md").read_text()
 
 
 @pytest.mark.slow

@@ -326,10 +326,14 @@ def run_sequence_suite(args: argparse.Namespace) -> int:
     for message in skipped:
         print(message, file=sys.stderr)
     variant = init_renderer_backend()
-    size = args.size[0][0] if args.size else 512
+    sizes = [(w, h) for w, h in args.size] if args.size else [(512, 512)]
+    if not all(32 <= n <= 4096 for size in sizes for n in size):
+        print("error: --size: image sizes must be 32..4096 px", file=sys.stderr)
+        return EXIT_USAGE
     references = args.references or list(DEFAULT_REFERENCES)
-    print(f"sequence suite ({variant}, {size} px, {args.frames} frames each)")
-    run_suite(models, args.sequences, references, args.frames, size, args.seed, args.output,
+    shown = ", ".join(f"{w}x{h}" for w, h in sizes)
+    print(f"sequence suite ({variant}, {shown} px, {args.frames} frames each)")
+    run_suite(models, args.sequences, references, args.frames, sizes, args.seed, args.output,
               chained=not args.no_chained)  # fmt: skip
     print(f"wrote {args.output / 'sequences.json'}, sequences.md")
     return 0

@@ -217,41 +217,46 @@ def run_suite(
     motions: list[str],
     references: list[str],
     n_frames: int,
-    size: int,
+    sizes: list[tuple[int, int]],
     seed: int,
     output: Path,
     chained: bool = True,
 ) -> list[dict[str, Any]]:
-    """Every (model, motion, reference) sequence through the tracker (and chained estimates);
-    writes OUTPUT/sequences.json and sequences.md and returns the rows."""
+    """Every (size, model, motion, reference) sequence through the tracker (and chained
+    estimates); writes OUTPUT/sequences.json and sequences.md and returns the rows. A size
+    W×H that is not square has its principal point off the centre (bench_camera); the
+    sequences of one (model, motion, reference) show the same motion at every size."""
     from worker.bench.cases import bench_camera
     from worker.engine.meshes import load_model
 
     rows: list[dict[str, Any]] = []
     output.mkdir(parents=True, exist_ok=True)
-    for mi_, (name, path) in enumerate(models):
-        model = load_model(path)
-        for mo, motion in enumerate(motions):
-            for ri, reference in enumerate(references):
-                seq_seed = seed * 1000 + 100 * mi_ + 10 * mo + ri
-                seq = make_sequence(
-                    model, bench_camera(size), MOTIONS[motion], n_frames, seq_seed, reference
-                )
-                jump_at = MOTIONS[motion].jump_at
-                methods = [("track", run_tracker)] + ([("chained", run_chained)] if chained else [])
-                for method, runner in methods:
-                    frames = runner(model, seq)
-                    row = SequenceRun(name, motion, reference, method, frames).row(jump_at)
-                    rows.append(row)
-                    print(_line(row), flush=True)
-                    _write(output, rows)
+    methods = [("track", run_tracker)] + ([("chained", run_chained)] if chained else [])
+    for w, h in sizes:
+        camera = bench_camera(w, None if w == h else h)
+        for mi_, (name, path) in enumerate(models):
+            model = load_model(path)
+            for mo, motion in enumerate(motions):
+                for ri, reference in enumerate(references):
+                    seq_seed = seed * 1000 + 100 * mi_ + 10 * mo + ri
+                    seq = make_sequence(
+                        model, camera, MOTIONS[motion], n_frames, seq_seed, reference
+                    )
+                    jump_at = MOTIONS[motion].jump_at
+                    for method, runner in methods:
+                        frames = runner(model, seq)
+                        run = SequenceRun(name, motion, reference, method, frames)
+                        row = {"size": f"{w}x{h}", **run.row(jump_at)}
+                        rows.append(row)
+                        print(_line(row), flush=True)
+                        _write(output, rows)
     return rows
 
 
 def _line(r: dict[str, Any]) -> str:
     spf = r["median_s_per_tracked_frame"] or r["median_s_per_frame"]
     return (
-        f"{r['model']} {r['motion']} {r['reference']} {r['method']}: "
+        f"{r['size']} {r['model']} {r['motion']} {r['reference']} {r['method']}: "
         f"{r['converged']}/{r['frames']} converged, {r['tracked']} tracked, "
         f"{r['reinitialised']} re-init, {r['lost']} lost; median {spf:.3f} s/frame, "
         f"rot median {r['rot_median_deg']:.4f}° max {r['rot_max_deg']:.4f}°, "
@@ -263,16 +268,16 @@ def _line(r: dict[str, Any]) -> str:
 def _write(output: Path, rows: list[dict[str, Any]]) -> None:
     (output / "sequences.json").write_text(json.dumps(rows, indent=1))
     head = (
-        "| model | motion | reference | method | converged | tracked / re-init / lost | "
+        "| size | model | motion | reference | method | converged | tracked / re-init / lost | "
         "s per frame (median) | renders per frame | rot. median / max | "
-        "transl. median / max | jump frame |\n|---|---|---|---|---|---|---|---|---|---|---|\n"
+        "transl. median / max | jump frame |\n|---|---|---|---|---|---|---|---|---|---|---|---|\n"
     )
     lines = []
     for r in rows:
         spf = r["median_s_per_tracked_frame"] or r["median_s_per_frame"]
         jump = r["jump"]["status"] if r["jump"] else ""
         lines.append(
-            f"| {r['model']} | {r['motion']} | {r['reference']} | {r['method']} | "
+            f"| {r['size']} | {r['model']} | {r['motion']} | {r['reference']} | {r['method']} | "
             f"{r['converged']}/{r['frames']} | {r['tracked']} / {r['reinitialised']} / "
             f"{r['lost']} | {spf:.3f} s | {r['renders_per_frame']:.1f} | "
             f"{r['rot_median_deg']:.4f}° / {r['rot_max_deg']:.4f}° | "
