@@ -5,7 +5,8 @@ from a constant-velocity prediction and keeps the previous frame's features (eac
 the previous image into the new one, starting where the learned Jacobian predicts it moved),
 their learned Jacobian rows (Broyden-updated by every accepted step), the fitted sun, the tone
 curve and the sharpness match (motion blur's streak measured again); so a frame costs a render
-at the prediction, and a trial only when the LM's step moves a feature by LINEAR_STEP_PX or more.
+at the prediction, a trial only when the LM's step moves a feature by LINEAR_STEP_PX or more, and
+two renders that measure the rows along its weakest directions (worker.align.weakprobe).
 The learned-Jacobian LM stays the core: the rows are the paper's, learned again (features made
 afresh, the sun's tilt solved again with options.fit_sun) once the attitude has turned
 RELEARN_ROTATION_DEG since, too few features are left, or the LM rejected a trial. Its robust
@@ -27,13 +28,14 @@ from numpy.typing import NDArray
 
 from schemas.estimate import EstimateRequest
 from worker.align.estimator import MIN_CONVERGED_SCORE, covariance_of, errors_between, estimate
-from worker.align.learning import LearnedJacobian, learn_at_pose
+from worker.align.learning import LearnedJacobian
 from worker.align.refine import StageState, run_lm_stage
 from worker.align.session import CancelCheck, Session
 from worker.align.skywindow import sky_window
 from worker.align.tracked import TrackedFeatures, law_misplaced, work_box
-from worker.align.trackmemory import Memory, Pose, mispredicted
+from worker.align.trackmemory import Memory, Pose, fresh_state, mispredicted
 from worker.align.trackresult import FrameResult
+from worker.align.weakprobe import probe_weak_directions
 from worker.engine.exceptions import ProxposeError, TooFewFeaturesError
 from worker.engine.images import FloatImage, check_size, to_grey
 from worker.engine.meshes import LoadedModel
@@ -285,9 +287,14 @@ class Tracker:
 
     @staticmethod
     def _lm(session: Session, state: StageState) -> str:
-        return run_lm_stage(
+        """The frame's LM from the prediction, then its rows measured along the weakest
+        directions and its step solved again (worker.align.weakprobe)."""
+        reason = run_lm_stage(
             session, "klt", "refine", fit_sun=False, state=state, linear_step_px=LINEAR_STEP_PX
         )
+        if reason in CONVERGED:
+            probe_weak_directions(session)
+        return reason
 
     def _session(
         self, previous: Session, image: FloatImage, guess: Pose, truth: Pose | None
@@ -372,14 +379,7 @@ class Tracker:
             fresh.sun_J = None  # the next frames keep this sun and solve for the pose only
         return fresh, reason
 
-    @staticmethod
-    def _fresh(session: Session) -> StageState:
-        """Features made afresh at the session's pose and their Jacobian learned there."""
-        view = session.current_view()
-        features = TrackedFeatures(session, view)
-        h, ok = features.measure(view, None)
-        learned = learn_at_pose(session, h, features.feature_normals)
-        return StageState(features, h, ok, learned, learned_at=view, level=view.level)
+    _fresh = staticmethod(fresh_state)
 
     def _recover(
         self, image: FloatImage, guess: Pose, truth: Pose | None, index: int, start: float

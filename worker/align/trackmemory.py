@@ -8,8 +8,10 @@ from dataclasses import dataclass, field
 import numpy as np
 from numpy.typing import NDArray
 
+from worker.align.learning import learn_at_pose
 from worker.align.refine import StageState
 from worker.align.session import Session
+from worker.align.tracked import TrackedFeatures
 
 Array = NDArray[np.float64]
 Pose = tuple[Array, Array]
@@ -38,3 +40,12 @@ def mispredicted(session: Session) -> bool:
     afresh there moved it back to 0.33° (bench/README.md, "A rejected trial learns the rows
     again")."""
     return any(not r.accepted and r.step_norm == 0.0 for r in session.history)
+
+
+def fresh_state(session: Session) -> StageState:
+    """Features made afresh at the session's pose and their Jacobian learned there."""
+    view = session.current_view()
+    features = TrackedFeatures(session, view)
+    h, ok = features.measure(view, None)
+    learned = learn_at_pose(session, h, features.feature_normals)
+    return StageState(features, h, ok, learned, learned_at=view, level=view.level)
