@@ -51,7 +51,7 @@ PROBE_DEG = 1.0
 #: 16 spp 46 ms.
 PROBE_SPP = 4
 #: A corrected step that moves the pose further than this from the LM's (degrees, with the
-#: translation as a share of the range) is not taken: the probes measured something else.
+#: translation as a share of the range) is not taken: the probe measured something else.
 MAX_CORRECTION_DEG = 1.0
 
 
@@ -73,7 +73,7 @@ def probe_weak_directions(session: Session) -> bool:
     features, J = st.features, st.learned.J
     # Where the features are in the render the step starts from: measured there, and moved
     # by the rows since when the LM's last step was a linear one (no render at its end).
-    h0, ok0 = st.h.copy(), st.ok
+    h0 = st.h.copy()
     moved = increment_between(base.R, base.t, session.R, session.t)
     h0[active] -= (J[rows_of(active)] @ moved).reshape(-1, 2)
     scale = np.concatenate([np.full(3, 2.0), np.full(3, 1.0 / session.range_)])
@@ -89,7 +89,7 @@ def probe_weak_directions(session: Session) -> bool:
         session.stage_spp = kept
     with session.timed("track"):
         h, found = features.measure(view, h0 + (np.nan_to_num(J) @ step).reshape(-1, 2))
-    found &= ok0 & st.learned.ok
+    found &= st.ok & st.learned.ok
     if (found & active).sum() < session.options.min_features:
         return False
     # Broyden's update along the probe's step, in parameters scaled by the perturbation sizes
@@ -116,7 +116,6 @@ def probe_weak_directions(session: Session) -> bool:
     J[:] = corrected
     session.R, session.t = R, t
     st.h = h0 + (np.nan_to_num(J) @ dp).reshape(-1, 2)
-    st.ok = st.ok & ok0
     r = r0 - J_w @ dp
     session.fit = LinearFit(J_w, r, w, st.h[active])
     n = int(used.sum())
