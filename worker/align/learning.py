@@ -214,6 +214,7 @@ def broyden_update(
     h_new: Array,
     dp: Array,
     sun_motion: Array | None = None,
+    min_motion_px: float = BROYDEN_MIN_MOTION_PX,
 ) -> None:
     """Correct the learned rows ``J`` (2k, 6) of features ``idx`` along the step ``dp`` just
     taken, in place (Broyden's rank-1 update).
@@ -221,12 +222,13 @@ def broyden_update(
     After an accepted step the features' actual motion h_new − h is known; J_k gains
     (Δh_k − J_k δp) s'ᵀ / s'ᵀs' in parameters scaled by the perturbation sizes (so rotation
     and translation count alike). Skipped for steps whose predicted motion is within the
-    measurement noise, where the update would learn noise. ``sun_motion`` (2k,): the part of
+    measurement noise, where the update would learn noise (``min_motion_px``: that floor; 0
+    for a step measured on purpose, worker.align.weakprobe). ``sun_motion`` (2k,): the part of
     the motion a change of the sun explains.
     """
     rows = np.concatenate([2 * idx[:, None], 2 * idx[:, None] + 1], axis=1).ravel()
     predicted = J[rows] @ dp
-    if np.median(np.abs(predicted)) < BROYDEN_MIN_MOTION_PX:
+    if np.median(np.abs(predicted)) < min_motion_px:
         return
     angle, half = perturbation_sizes(session)
     S = np.concatenate([np.full(3, 0.5 * angle), half])

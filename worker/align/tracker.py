@@ -6,7 +6,7 @@ the previous image into the new one, starting where the learned Jacobian predict
 their learned Jacobian rows (Broyden-updated by every accepted step), the fitted sun, the tone
 curve and the sharpness match (motion blur's streak measured again); so a frame costs a render
 at the prediction, a trial only when the LM's step moves a feature by LINEAR_STEP_PX or more, and
-two renders that measure the rows along its weakest directions (worker.align.weakprobe).
+one when its rows disagree with the geometry along a weak direction (worker.align.weakprobe).
 The learned-Jacobian LM stays the core: the rows are the paper's, learned again (features made
 afresh, the sun's tilt solved again with options.fit_sun) once the attitude has turned
 RELEARN_ROTATION_DEG since, too few features are left, or the LM rejected a trial. Its robust

@@ -28,7 +28,7 @@ from __future__ import annotations
 import numpy as np
 from numpy.typing import NDArray
 
-from worker.align.learning import analytic_jacobian, perturbation_sizes
+from worker.align.learning import analytic_jacobian, broyden_update
 from worker.align.lm import lm_step, rows_of, weighted_cost, whiten
 from worker.align.session import LinearFit, Session
 from worker.align.tracked import Features
@@ -92,16 +92,10 @@ def probe_weak_directions(session: Session) -> bool:
     found &= st.ok & st.learned.ok
     if (found & active).sum() < session.options.min_features:
         return False
-    # Broyden's update along the probe's step, in parameters scaled by the perturbation sizes
-    # (worker.align.learning.broyden_update, without its floor on the motion: here the
-    # motion is small by design, and measured from a render, not a trial's prediction).
-    angle, half = perturbation_sizes(session)
-    S = np.concatenate([np.full(3, 0.5 * angle), half])
-    s_ = step / S
-    rows = rows_of(found)
-    moved_px = (h - h0).ravel()[rows]
+    # Broyden's update along the probe's step, without its floor on the motion: here the
+    # motion is small by design, and measured from a render, not a trial's prediction.
     corrected = J.copy()
-    corrected[rows] += np.outer(moved_px - J[rows] @ step, s_ / (s_ @ s_)) / S
+    broyden_update(session, corrected, h0, np.flatnonzero(found), h, step, min_motion_px=0.0)
     used = found[active]
     A = features.A[active]
     J_w = whiten(A, corrected[rows_of(active)])
