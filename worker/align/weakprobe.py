@@ -3,8 +3,9 @@
 Why. A tracked frame takes one step (or a few) from a constant-velocity prediction with rows
 learned frames earlier. Where the target is small in the frame, two directions of the pose
 move the features least: each out-of-plane rotation traded against a lateral shift (their
-geometric σ ~100× the best-seen direction's, for the demo satellite at 640×480). Learned rows get those near-cancellations wrong by more than they are (their
-tracking noise is a few per cent of each column; worker/align/geometric.py), so the step from
+geometric σ ~100× the best-seen direction's, for the demo satellite at 640×480). Learned rows
+get those near-cancellations wrong by more than they are (their tracking noise is a few per
+cent of each column; worker/align/geometric.py), so the step from
 the prediction corrects a fifth of the prediction's error there or less, and the error goes on
 into the velocity: the next prediction carries it further, and the track walks (the demo
 satellite's fly-around at 640×480: 0.07° after the first frame, 0.56° eight frames later;
