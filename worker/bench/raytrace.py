@@ -61,28 +61,25 @@ def _vec(v: object) -> Array:
 def _rays(origins: Array, dirs: Array) -> object:
     import mitsuba as mi
 
-    o = np.broadcast_to(origins, dirs.shape)
-    return mi.Ray3f(
-        mi.Point3f(*[mi.Float(np.ascontiguousarray(o[:, k], dtype=np.float32)) for k in range(3)]),
-        mi.Vector3f(
-            *[mi.Float(np.ascontiguousarray(dirs[:, k], dtype=np.float32)) for k in range(3)]
-        ),
-    )
+    from worker.engine.rays import drjit_floats
+
+    o = drjit_floats(np.broadcast_to(origins, dirs.shape))
+    return mi.Ray3f(mi.Point3f(*o), mi.Vector3f(*drjit_floats(dirs)))
 
 
 def _intersect(scene: object, origin: Array, dirs: Array) -> _Hits:
     import drjit as dr
 
     si = scene.ray_intersect(_rays(origin, dirs))  # type: ignore[attr-defined]
-    hits = _Hits(
-        valid=np.array(si.is_valid(), dtype=bool),
+    valid, albedo = si.is_valid(), si.bsdf().eval_diffuse_reflectance(si)
+    dr.eval(valid, si.p, si.n, si.sh_frame.n, albedo)  # one kernel: each read alone traced again
+    return _Hits(
+        valid=np.array(valid, dtype=bool),
         p=_vec(si.p),
         n_geo=_vec(si.n),
         n_shade=_vec(si.sh_frame.n),
-        albedo=_vec(si.bsdf().eval_diffuse_reflectance(si)),
+        albedo=_vec(albedo),
     )
-    dr.eval()
-    return hits
 
 
 def _occluded(scene: object, points: Array, L: Array) -> NDArray[np.bool_]:
