@@ -82,6 +82,13 @@ class StageState:
     sun_J: Array | None = None  # (2k, 2) px per radian of sun tilt (see worker.align.sunfit)
     level: float = 1.0  # the session level the features were made at (their pixel scale)
 
+    @property
+    def active(self) -> NDArray[np.bool_]:
+        """The features a step uses: found, with learned rows, and inliers once RANSAC ran."""
+        assert self.learned is not None
+        active = self.ok & self.learned.ok
+        return active if self.inliers is None else active & self.inliers
+
 
 def _new_state(session: Session, mode: str, view: RenderedView) -> StageState:
     with session.timed("match"):
@@ -241,9 +248,7 @@ def _linear_system(session: Session, st: StageState, lam: float, sun: SunTilt | 
     """
     opts = session.options
     assert st.learned is not None
-    active = st.ok & st.learned.ok
-    if st.inliers is not None:
-        active &= st.inliers
+    active = st.active
     if active.sum() < opts.min_features:
         raise TooFewFeaturesError(
             f"only {int(active.sum())} features usable (need {opts.min_features})"
@@ -255,7 +260,7 @@ def _linear_system(session: Session, st: StageState, lam: float, sun: SunTilt | 
     with session.timed("solve"):
         w = _weights(session, st, J, r, active)
         if st.inliers is not None:
-            active_new = st.ok & st.learned.ok & st.inliers
+            active_new = st.active
             if not np.array_equal(active_new, active):  # RANSAC just ran: restrict
                 keep = active_new[active]
                 active, J, r, w = active_new, J[rows_of(keep)], r[rows_of(keep)], w[keep]

@@ -65,9 +65,7 @@ def probe_weak_directions(session: Session) -> bool:
     st, fit, base = session.last_stage, session.fit, session.current
     if st is None or st.learned is None or fit is None or base is None or fit.J.shape[1] != 6:
         return False
-    active = st.ok & st.learned.ok
-    if st.inliers is not None:
-        active &= st.inliers
+    active = st.active
     if len(fit.w) != active.sum():
         return False
     features, J = st.features, st.learned.J

@@ -21,6 +21,7 @@ from numpy.typing import NDArray
 
 from worker.engine.camera import PinholeCamera
 from worker.engine.meshes import LoadedModel
+from worker.engine.rays import drjit_floats, numpy_vectors
 from worker.engine.renderer import LightingSpec, Renderer
 
 Array = NDArray[np.float64]
@@ -54,14 +55,8 @@ class _Hits:
     albedo: Array  # (n, 3) linear reflectance (texture, vertex colour or constant)
 
 
-def _vec(v: object) -> Array:
-    return np.stack([np.array(v.x), np.array(v.y), np.array(v.z)], axis=1).astype(np.float64)  # type: ignore[attr-defined]
-
-
 def _rays(origins: Array, dirs: Array) -> object:
     import mitsuba as mi
-
-    from worker.engine.rays import drjit_floats
 
     o = drjit_floats(np.broadcast_to(origins, dirs.shape))
     return mi.Ray3f(mi.Point3f(*o), mi.Vector3f(*drjit_floats(dirs)))
@@ -75,10 +70,10 @@ def _intersect(scene: object, origin: Array, dirs: Array) -> _Hits:
     dr.eval(valid, si.p, si.n, si.sh_frame.n, albedo)  # one kernel: each read alone traced again
     return _Hits(
         valid=np.array(valid, dtype=bool),
-        p=_vec(si.p),
-        n_geo=_vec(si.n),
-        n_shade=_vec(si.sh_frame.n),
-        albedo=_vec(albedo),
+        p=numpy_vectors(si.p),
+        n_geo=numpy_vectors(si.n),
+        n_shade=numpy_vectors(si.sh_frame.n),
+        albedo=numpy_vectors(albedo),
     )
 
 

@@ -40,15 +40,19 @@ def intersect(
     D = np.empty((padded, 3))
     D[:n] = dirs
     D[n:] = dirs[0]
-    o, d = drjit_floats(np.broadcast_to(origin, (padded, 3))), drjit_floats(D)
-    si = scene.ray_intersect(mi.Ray3f(mi.Point3f(*o), mi.Vector3f(*d)))  # type: ignore[attr-defined]
+    o3, d3 = drjit_floats(np.broadcast_to(origin, (padded, 3))), drjit_floats(D)
+    si = scene.ray_intersect(mi.Ray3f(mi.Point3f(*o3), mi.Vector3f(*d3)))  # type: ignore[attr-defined]
     valid, sh = si.is_valid(), si.n if geometric else si.sh_frame.n
     dr.eval(valid, si.p, sh)  # one kernel for all three: each read alone traced the rays again
-    hits = np.array(valid, dtype=bool)
-    pts = np.stack([np.array(si.p.x), np.array(si.p.y), np.array(si.p.z)], axis=1)
-    nrm = np.stack([np.array(sh.x), np.array(sh.y), np.array(sh.z)], axis=1)
+    hits, nrm = np.array(valid, dtype=bool), numpy_vectors(sh)
     nrm[~hits] = 0.0
-    return hits, pts.astype(np.float64), nrm.astype(np.float64)
+    return hits, numpy_vectors(si.p), nrm
+
+
+def numpy_vectors(v: object) -> Array:
+    """A Dr.Jit 3-vector array (x, y, z of N each) as an (N, 3) float64 array."""
+    xyz = [np.array(v.x), np.array(v.y), np.array(v.z)]  # type: ignore[attr-defined]
+    return np.stack(xyz, axis=1).astype(np.float64)
 
 
 def drjit_floats(columns: NDArray[np.floating]) -> list[object]:
@@ -59,8 +63,9 @@ def drjit_floats(columns: NDArray[np.floating]) -> list[object]:
     import mitsuba as mi
 
     n, k = columns.shape
-    row = -(-n // (KERNEL_ALIGN // 4)) * (KERNEL_ALIGN // 4)  # each column starts aligned
-    buf = np.empty(k * row + KERNEL_ALIGN // 4, dtype=np.float32)
+    per_line = KERNEL_ALIGN // 4  # float32s
+    row = -(-n // per_line) * per_line  # each column starts aligned
+    buf = np.empty(k * row + per_line, dtype=np.float32)
     skip = (-buf.ctypes.data % KERNEL_ALIGN) // 4
     cols = buf[skip : skip + k * row].reshape(k, row)
     cols[:, :n] = columns.T
