@@ -54,7 +54,8 @@ def test_a_cast_is_one_kernel_and_one_hash_whatever_the_alignment(
     assert len(set(hashes)) == 1
 
 
-def test_the_floats_handed_to_drjit_start_aligned_and_hold_the_columns(variant: str) -> None:
+def test_the_floats_handed_to_drjit_hold_the_columns_of_a_misaligned_array(variant: str) -> None:
+    """Their alignment shows in the kernels (the test above); here, their values."""
     if variant.startswith("scalar"):
         pytest.skip(f"{variant} has no Dr.Jit arrays to align")
     columns = _misaligned(np.arange(3 * 37, dtype=np.float64).reshape(37, 3), 8)
