@@ -5,6 +5,7 @@ descriptor matches measure the same shift."""
 
 from __future__ import annotations
 
+import copy
 from types import SimpleNamespace
 
 import cv2
@@ -12,9 +13,9 @@ import numpy as np
 from synthetic_images import blobs, discs, rectangles
 
 from schemas.options import EstimateOptions
-from worker.align.blur import streak_kernel
+from worker.align.blur import Blur, streak_kernel
 from worker.align.session import RenderedView
-from worker.align.tracked import MatchedFeatures, TrackedFeatures
+from worker.align.tracked import MatchedFeatures, TrackedFeatures, inherited_smear
 from worker.engine.images import Box, on_sky
 from worker.engine.photometry import BLUR_REACH_PX, render_to_grey
 
@@ -175,3 +176,16 @@ def test_a_set_carried_into_a_frame_measures_a_changing_blur_again() -> None:
     assert carry(same, streak(110.0)).blur is lens.blur  # no longer measured
     changed = carry(lens, defocus(0.4))
     assert changed.smeared and changed.blur.sigma_px < 0.6, changed.blur
+
+    # A set made afresh (a tracker's relearning) goes on from what the carried one found: an
+    # unchanged lens blur is not measured again, a changed one or a streak is, and a set never
+    # carried (not checked yet) leaves the fresh set's own.
+    fresh = TrackedFeatures(defocus(1.0), render)  # type: ignore[arg-type]
+    assert fresh.smeared is None
+    assert inherited_smear(same, fresh) is False
+    assert inherited_smear(changed, fresh) is True
+    assert inherited_smear(lens, fresh) is None
+    assert inherited_smear(same, TrackedFeatures(streak(20.0), render)) is True  # type: ignore[arg-type]
+    sharp = copy.copy(same)  # a set that found no blur (smeared False): nothing was checked
+    sharp.blur = Blur()
+    assert inherited_smear(sharp, fresh) is None

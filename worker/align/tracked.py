@@ -313,6 +313,24 @@ def law_misplaced(features: object, R_predicted: Array, R: Array) -> bool:
     return rotation_error_deg(R_predicted, R) > LAW_AGAIN_DEG
 
 
+def inherited_smear(carried: object, fresh: object) -> bool | None:
+    """The ``smeared`` of a set made afresh (``fresh``) where a tracker's ``carried`` set
+    was: True once frames showed a changing blur or a streak (later ones measure it too);
+    False when ``carried`` had measured its blur (not a streak) again in the frame it was
+    carried into and found it unchanged, and ``fresh`` found no streak either: a lens's or a
+    pixel filter's blur stays, and measuring it again in the first frame after every
+    relearning cost that frame 0.07-0.2 s (bench/README.md, "A blur found unchanged is not
+    measured again"); else ``fresh``'s own."""
+    was = getattr(carried, "smeared", False)
+    own: bool | None = getattr(fresh, "smeared", False)
+    if was:
+        return True
+    blur = getattr(carried, "blur", None)
+    if was is False and own is None and blur is not None and blur.active:
+        return False
+    return own
+
+
 def work_box(view: RenderedView) -> Box | None:
     """The part of ``view``'s image that processing it needs: its sky box grown by the blurs'
     reach (outside it the render and every blur of it are sky); None: all of it."""

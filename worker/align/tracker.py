@@ -32,7 +32,7 @@ from worker.align.learning import LearnedJacobian
 from worker.align.refine import StageState, run_lm_stage
 from worker.align.session import CancelCheck, Session
 from worker.align.skywindow import sky_window
-from worker.align.tracked import TrackedFeatures, law_misplaced, work_box
+from worker.align.tracked import TrackedFeatures, inherited_smear, law_misplaced, work_box
 from worker.align.trackmemory import Memory, Pose, fresh_state, mispredicted
 from worker.align.trackresult import FrameResult
 from worker.align.weakprobe import probe_weak_directions
@@ -361,9 +361,9 @@ class Tracker:
         ``always``) an LM pass from them, the sun's tilt solved too with fit_sun; returns them
         and the pass's stop rule. Without ``always`` a pass short of features leaves the pose."""
         fresh = self._fresh(session)
-        # Once frames showed a changing blur, later ones measure it too (TrackedFeatures.smeared).
-        if carried.features.smeared:  # type: ignore[attr-defined]
-            fresh.features.smeared = True  # type: ignore[attr-defined]
+        fresh.features.smeared = inherited_smear(  # type: ignore[attr-defined]
+            carried.features, fresh.features
+        )
         reason = "cost_converged"
         if session.options.fit_sun or always:
             session.options = session.options.model_copy(
