@@ -9,6 +9,8 @@ is not all in front of the camera.
 
 from __future__ import annotations
 
+import copy
+
 import numpy as np
 import pytest
 from test_projection import AMBIENT_ONLY, R_MODEL, SPP, T_MODEL, spheres_model
@@ -16,10 +18,11 @@ from test_projection import AMBIENT_ONLY, R_MODEL, SPP, T_MODEL, spheres_model
 from schemas.options import EstimateOptions
 from worker.align.pyramid import WINDOW_MARGIN, WINDOW_PAD_PX, plan_windows
 from worker.align.session import Session
-from worker.align.skywindow import SKY_KEEP, sky_window
+from worker.align.skywindow import SKY_KEEP, outline_points, sky_window
 from worker.engine.camera import PinholeCamera
 from worker.engine.images import Box
 from worker.engine.photometry import render_to_grey
+from worker.engine.posemath import axis_angle_to_matrix
 from worker.engine.renderer import Renderer
 
 CAMERA = PinholeCamera(160, 120, 150.0, 150.0, 79.5, 59.5)
@@ -135,3 +138,28 @@ def test_the_whole_image_is_rendered_when_the_model_is_not_all_in_front_of_the_c
     session = _session(renderer, np.zeros((CAMERA.height, CAMERA.width, 3), np.float32))
     t_close = T_MODEL - [0.0, 0.0, 9.0]  # the camera among the spheres
     assert sky_window(points, session, (R_MODEL, t_close)) is None
+
+
+def test_the_outline_points_bound_the_image_as_all_the_vertices_do() -> None:
+    """outline_points: the vertices of the model's convex hull give the same projected bounds
+    and the same least depth as all its vertices, exactly, at poses all round (so the sky
+    window is the same), from a fraction of them; a flat model keeps all its vertices."""
+    model = spheres_model(CENTRES)
+    every = np.concatenate([p.vertices for p in model.parts]).astype(np.float32)
+    outline = outline_points(model)
+    assert outline.dtype == np.float32 and len(outline) < len(every) / 2
+    rng = np.random.default_rng(7)
+    for _ in range(200):
+        R = axis_angle_to_matrix(rng.normal(size=3), rng.uniform(0.0, np.pi)).astype(np.float32)
+        t = np.array([rng.normal(), rng.normal(), rng.uniform(8.0, 12.0)], dtype=np.float32)
+        X, Y = every @ R.T + t, outline @ R.T + t
+        assert X[:, 2].min() == Y[:, 2].min()
+        uv, uv_outline = CAMERA.project(X), CAMERA.project(Y)
+        np.testing.assert_array_equal(uv.min(axis=0), uv_outline.min(axis=0))
+        np.testing.assert_array_equal(uv.max(axis=0), uv_outline.max(axis=0))
+
+    flat_part = copy.copy(model.parts[0])
+    flat_part.vertices = flat_part.vertices * np.array([1.0, 1.0, 0.0], dtype=np.float32)
+    flat = copy.copy(model)
+    flat.parts = [flat_part]
+    assert len(outline_points(flat)) == len(flat_part.vertices)

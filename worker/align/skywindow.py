@@ -22,6 +22,7 @@ from numpy.typing import NDArray
 
 from worker.align.pyramid import ladder_side
 from worker.align.session import LIT_FRACTION, Session
+from worker.engine.meshes import LoadedModel
 
 Array = NDArray[np.float64]
 SkyWindow = tuple[int, tuple[float, float]]
@@ -33,6 +34,21 @@ SKY_SPILL = 0.01
 #: side it needs (two steps of the ladder): a side's first renders compile its kernels, and a
 #: tumbling target's bounds would otherwise move between sides from frame to frame.
 SKY_KEEP = 2.0**0.5 + 1e-6
+
+
+def outline_points(model: LoadedModel) -> NDArray[np.float32]:
+    """The model's vertices (model frame, float32) that bound its image at any pose: those of
+    their convex hull, for the extremes of a projection over a convex set lie at its vertices
+    (as do those of the depth); the bounds are the same as all the vertices give, at a fraction
+    of the cost (the ISS: 73 of 101,363, ~10 ms a frame less). All of them when SciPy is not
+    installed or the hull is degenerate (a flat model)."""
+    points = np.concatenate([p.vertices for p in model.parts]).astype(np.float32)
+    try:
+        from scipy.spatial import ConvexHull
+
+        return points[np.sort(ConvexHull(points.astype(np.float64)).vertices)]
+    except (ImportError, RuntimeError, ValueError):  # no SciPy; QhullError; too few points
+        return points
 
 
 def sky_window(

@@ -31,7 +31,7 @@ from worker.align.estimator import MIN_CONVERGED_SCORE, covariance_of, errors_be
 from worker.align.learning import LearnedJacobian
 from worker.align.refine import StageState, run_lm_stage
 from worker.align.session import CancelCheck, Session
-from worker.align.skywindow import sky_window
+from worker.align.skywindow import outline_points, sky_window
 from worker.align.tracked import TrackedFeatures, inherited_smear, law_misplaced, work_box
 from worker.align.trackmemory import Memory, Pose, fresh_state, mispredicted
 from worker.align.trackresult import FrameResult
@@ -124,8 +124,8 @@ class Tracker:
         #: The request's sun (a full estimate's ``requested_lighting``): the prior of a tracked
         #: frame's sun fit, not the tilted sun the renderer was left with.
         self._requested: LightingSpec | None = None
-        #: The model's vertices (model frame), whose image bounds each frame's sky window.
-        self._points = np.concatenate([p.vertices for p in model.parts]).astype(np.float32)
+        #: The model's outline vertices (model frame), whose image bounds each sky window.
+        self._points = outline_points(model)
 
     # -- the sequence ---------------------------------------------------------------------
     def track(self, image: FloatImage, truth: Pose | None = None) -> FrameResult:
