@@ -94,9 +94,10 @@ class LoadedModel:
         """The largest texture resolution of its parts, texels per scene unit (0 if none)."""
         return max((p.texels_per_unit for p in self.parts), default=0.0)
 
-    @property
+    @cached_property
     def radius(self) -> float:
-        """Radius of the bounding sphere about the bounding-box centre, scene units."""
+        """Radius of the bounding sphere about the bounding-box centre, scene units (computed
+        once: estimates ask for it every iteration, ~1 ms over the ISS's 101,363 vertices)."""
         return max(
             float(np.linalg.norm(p.vertices - self.centre, axis=1).max()) for p in self.parts
         )
