@@ -4,8 +4,10 @@ from __future__ import annotations
 
 import gc
 import weakref
+from collections.abc import Iterator
 
 import numpy as np
+import pytest
 
 from worker.align import renderers
 from worker.align.renderers import get_renderer
@@ -16,6 +18,14 @@ from worker.engine.renderer import LightingSpec
 CAMERA = PinholeCamera(48, 48, 60.0, 60.0, 23.5, 23.5)
 LIGHT = LightingSpec((0.4, -0.5, -0.77), 3.0, 0.02)
 R, T = np.eye(3), np.array([0.0, 0.0, 4.0])
+
+
+@pytest.fixture(autouse=True)
+def _no_scenes_left() -> Iterator[None]:
+    """Leave no renderer behind: a live scene changes what other tests' renders record."""
+    yield
+    renderers._renderers.clear()
+    gc.collect()
 
 
 def _quad(name: str, size: float) -> LoadedModel:
